@@ -1,0 +1,3 @@
+"""SDfR: Service Discovery for Robots."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,210 @@
+"""Daemon configuration: defaults, TOML file, command-line flags, one validated dataclass."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import os
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from sdfr.errors import ConfigError
+from sdfr.model import ROBOT_ID_RE
+
+DEFAULT_API = "127.0.0.1:8700"
+DEFAULT_DESCRIBE = "0.0.0.0:8701"
+
+
+def default_state_dir() -> Path:
+    if os.geteuid() == 0:
+        return Path("/var/lib/sdfr")
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "sdfr"
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    """Everything `sdfrd` can be told; every field is a flag and a TOML key of the same name."""
+
+    iface: str | None = None
+    fleet: int = 1
+    api: str = DEFAULT_API
+    describe: str = DEFAULT_DESCRIBE
+    state_dir: Path = field(default_factory=default_state_dir)
+    beacon_interval: float = 10.0
+    robot_id: str | None = None
+    group: str = "239.255.255.250"
+    port: int = 1900
+    miss_limit: int = 3
+    ping_interval: float | None = None
+    reply_delay_max: float = 0.5
+    ttl: int = 1
+    log_level: str = "info"
+
+    @property
+    def effective_ping_interval(self) -> float:
+        return self.ping_interval if self.ping_interval is not None else self.beacon_interval / 2
+
+    def validate(self) -> Config:
+        """Return self, or raise ConfigError naming the key that is wrong."""
+        if not 0 <= self.fleet <= 255:
+            raise ConfigError(
+                f"fleet: must be 0-255 (it is the second octet of 10.<fleet>.x.y), got {self.fleet}"
+            )
+        split_hostport("api", self.api)
+        split_hostport("describe", self.describe)
+        if not 0.05 <= self.beacon_interval <= 3600:
+            raise ConfigError(
+                f"beacon_interval: must be 0.05-3600 seconds, got {self.beacon_interval}"
+            )
+        if self.robot_id is not None and not ROBOT_ID_RE.match(self.robot_id):
+            raise ConfigError(
+                f"robot_id: {self.robot_id!r} must be 1-64 characters of A-Z a-z 0-9 . _ -"
+            )
+        try:
+            group = ipaddress.IPv4Address(self.group)
+        except ValueError as exc:
+            raise ConfigError(f"group: {exc}") from None
+        if not group.is_multicast:
+            raise ConfigError(f"group: {self.group} is not an IPv4 multicast address")
+        if not 1 <= self.port <= 65535:
+            raise ConfigError(f"port: must be 1-65535, got {self.port}")
+        if not 1 <= self.miss_limit <= 100:
+            raise ConfigError(f"miss_limit: must be 1-100 beacon periods, got {self.miss_limit}")
+        if self.ping_interval is not None and not 0.02 <= self.ping_interval <= 3600:
+            raise ConfigError(f"ping_interval: must be 0.02-3600 seconds, got {self.ping_interval}")
+        if not 0 <= self.reply_delay_max <= 5:
+            raise ConfigError(f"reply_delay_max: must be 0-5 seconds, got {self.reply_delay_max}")
+        if not 1 <= self.ttl <= 255:
+            raise ConfigError(f"ttl: must be 1-255, got {self.ttl}")
+        if self.log_level not in ("debug", "info", "warning", "error"):
+            raise ConfigError(
+                f"log_level: must be debug, info, warning or error, got {self.log_level!r}"
+            )
+        return self
+
+
+def split_hostport(key: str, value: str) -> tuple[str, int]:
+    """Split `HOST:PORT`; raise ConfigError naming `key` when it is not one."""
+    host, sep, port_s = value.rpartition(":")
+    if not sep or not host or not port_s.isdigit() or not 0 <= int(port_s) <= 65535:
+        raise ConfigError(f"{key}: expected HOST:PORT (e.g. 127.0.0.1:8700), got {value!r}")
+    host = host.strip("[]")
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        if host != "localhost":
+            raise ConfigError(f"{key}: {host!r} is not an IP address") from None
+    return host, int(port_s)
+
+
+_HELP: dict[str, str] = {
+    "iface": "network interface the fleet is on (default: the one with the default route, "
+    "else the first non-loopback interface that is up)",
+    "fleet": "fleet id 0-255; robots of other fleets are ignored (default 1)",
+    "api": f"HOST:PORT of the local REST API (default {DEFAULT_API}); it also listens on "
+    "STATE_DIR/api.sock",
+    "describe": f"HOST:PORT of the read-only description server other robots and SSDP clients "
+    f"fetch LOCATION from (default {DEFAULT_DESCRIBE})",
+    "state_dir": "directory of the durable state: registrations, history map (default "
+    "/var/lib/sdfr as root, else $XDG_STATE_HOME/sdfr)",
+    "beacon_interval": "seconds between Alive beacons (default 10)",
+    "robot_id": "this robot's identity (default: derived from the interface's MAC)",
+    "group": "IPv4 multicast group (default 239.255.255.250)",
+    "port": "UDP port (default 1900)",
+    "miss_limit": "beacon periods of silence after which a peer is unreachable (default 3)",
+    "ping_interval": "seconds between unicast pings to each reachable peer (default: half the "
+    "beacon interval)",
+    "reply_delay_max": "longest random delay before answering a Discovery, bounded by its MX "
+    "(default 0.5)",
+    "ttl": "multicast TTL (default 1: one radio hop)",
+    "log_level": "debug, info, warning or error (default info)",
+}
+
+
+def _coerce(name: str, raw: Any) -> Any:
+    kinds: dict[str, type] = {
+        "fleet": int,
+        "port": int,
+        "miss_limit": int,
+        "ttl": int,
+        "beacon_interval": float,
+        "ping_interval": float,
+        "reply_delay_max": float,
+    }
+    if name == "state_dir":
+        return Path(str(raw))
+    kind = kinds.get(name)
+    if kind is None:
+        if not isinstance(raw, str):
+            raise ConfigError(f"{name}: expected a string, got {raw!r}")
+        return raw
+    if isinstance(raw, bool) or (kind is int and not isinstance(raw, int | str)):
+        raise ConfigError(f"{name}: expected {kind.__name__}, got {raw!r}")
+    try:
+        return kind(raw)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name}: expected {kind.__name__}, got {raw!r}") from None
+
+
+def load_toml(path: Path) -> dict[str, Any]:
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config: {path} does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config: {path} is not valid TOML: {exc}") from None
+    table = data.get("sdfrd", data)
+    if not isinstance(table, dict):
+        raise ConfigError(f"config: [sdfrd] in {path} must be a table")
+    names = {f.name for f in fields(Config)}
+    out: dict[str, Any] = {}
+    for key, raw in table.items():
+        name = key.replace("-", "_")
+        if name not in names:
+            raise ConfigError(
+                f"config: unknown key {key!r} in {path}; known: {', '.join(sorted(names))}"
+            )
+        out[name] = _coerce(name, raw)
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="sdfrd",
+        description="SDfR daemon: discovers the reachable robots of a fleet and their services, "
+        "and serves them to local programs over a REST API.",
+        epilog="Every option is also a key of the TOML file given with --config (top level or "
+        "under [sdfrd], same names with - or _); flags override the file.",
+    )
+    p.add_argument("--config", type=Path, metavar="FILE", help="TOML config file")
+    for f in fields(Config):
+        flag = "--" + f.name.replace("_", "-")
+        meta = f.name.upper()
+        p.add_argument(flag, dest=f.name, default=None, metavar=meta, help=_HELP[f.name])
+    return p
+
+
+def from_args(argv: list[str] | None = None) -> Config:
+    """Defaults, then the TOML file, then flags; validated."""
+    args = build_parser().parse_args(argv)
+    values: dict[str, Any] = {}
+    if args.config is not None:
+        values.update(load_toml(args.config))
+    for f in fields(Config):
+        raw = getattr(args, f.name)
+        if raw is not None:
+            values[f.name] = _coerce(f.name, raw)
+    return replace(Config(), **values).validate()
+
+
+def to_args(cfg: Config) -> list[str]:
+    """The flags that rebuild `cfg` (the supervisor passes them to its layers)."""
+    out: list[str] = []
+    for f in fields(Config):
+        value = getattr(cfg, f.name)
+        if value is not None:
+            out += ["--" + f.name.replace("_", "-"), str(value)]
+    return out

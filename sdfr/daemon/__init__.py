@@ -1,0 +1,1 @@
+"""Process-level adapters: the supervisor and the two layers it runs."""

@@ -1,0 +1,278 @@
+"""Durable state shared by the two layers: SQLite in WAL mode.
+
+Owners: the API layer writes local registrations (`local_services`, the local
+version); the discovery layer writes the history map (`peers`) and its status.
+Each reads what the other writes. WAL lets readers proceed while a writer
+commits, and with synchronous=NORMAL a commit survives a crash of the process
+(the page cache keeps it) without an fsync per request.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sdfr.errors import SdfrError
+from sdfr.model import Service
+
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS local_services (
+    id TEXT PRIMARY KEY,
+    seq INTEGER NOT NULL,
+    body TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS peers (
+    robot_id TEXT PRIMARY KEY,
+    address TEXT NOT NULL,
+    location TEXT NOT NULL,
+    boot_id INTEGER NOT NULL,
+    version INTEGER NOT NULL,
+    digest TEXT NOT NULL,
+    reachable INTEGER NOT NULL,
+    first_seen REAL NOT NULL,
+    last_seen REAL NOT NULL,
+    indicator REAL,
+    rtt_ms REAL,
+    pings INTEGER NOT NULL DEFAULT 0,
+    services TEXT NOT NULL
+);
+"""
+
+
+@dataclass(frozen=True, slots=True)
+class PeerRecord:
+    """A robot of the history map as the discovery layer last saw it (times are Unix epoch)."""
+
+    robot_id: str
+    address: str
+    location: str
+    boot_id: int
+    version: int
+    digest: str
+    reachable: bool
+    first_seen: float
+    last_seen: float
+    indicator: float | None
+    rtt_ms: float | None
+    pings: int
+    services: tuple[Service, ...] = field(default=())
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "robot_id": self.robot_id,
+            "address": self.address,
+            "location": self.location,
+            "reachable": self.reachable,
+            "indicator": self.indicator,
+            "rtt_ms": self.rtt_ms,
+            "boot_id": self.boot_id,
+            "version": self.version,
+            "first_seen": self.first_seen,
+            "last_seen": self.last_seen,
+            "services": [s.to_json() for s in self.services],
+        }
+
+
+class StoreError(SdfrError):
+    """The state directory cannot be used."""
+
+
+def _service_from_row(body: str) -> Service:
+    obj = json.loads(body)
+    return Service.from_json(obj)
+
+
+def _dumps(obj: Any) -> str:
+    return json.dumps(obj, separators=(",", ":"), ensure_ascii=False)
+
+
+class Store:
+    """One connection to the state database; each process opens its own."""
+
+    def __init__(self, state_dir: Path) -> None:
+        try:
+            state_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"state_dir: cannot create {state_dir}: {exc.strerror}") from None
+        if not os.access(state_dir, os.W_OK):
+            raise StoreError(f"state_dir: {state_dir} is not writable")
+        self.path = state_dir / "state.db"
+        try:
+            self._db = sqlite3.connect(
+                self.path, timeout=10.0, isolation_level=None, check_same_thread=False
+            )
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.executescript(_SCHEMA)
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(
+                f"state_dir: {self.path} is not a usable SDfR database: {exc}"
+            ) from None
+        self._db.execute(
+            "INSERT OR IGNORE INTO meta(key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),)
+        )
+
+    def close(self) -> None:
+        self._db.close()
+
+    # -- meta ------------------------------------------------------------------------------
+
+    def get_meta(self, key: str) -> str | None:
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else str(row[0])
+
+    def set_meta(self, key: str, value: str) -> None:
+        self._db.execute(
+            "INSERT INTO meta(key, value) VALUES (?, ?) "
+            "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+            (key, value),
+        )
+
+    def next_boot_id(self) -> int:
+        """A boot id larger than any this state directory handed out before."""
+        with self._tx():
+            boot = int(self.get_meta("boot_id") or "0") + 1
+            self.set_meta("boot_id", str(boot))
+        return boot
+
+    def data_version(self) -> int:
+        """Changes whenever another connection commits (cheap cache validation)."""
+        return int(self._db.execute("PRAGMA data_version").fetchone()[0])
+
+    # -- local registrations (owner: API layer) --------------------------------------------
+
+    def local_version(self) -> int:
+        return int(self.get_meta("local_version") or "0")
+
+    def local_state(self) -> tuple[int, list[Service]]:
+        """The version and the services it names, read in one snapshot."""
+        with self._tx(immediate=False):
+            version = self.local_version()
+            rows = self._db.execute("SELECT body FROM local_services ORDER BY seq").fetchall()
+        return version, [_service_from_row(r[0]) for r in rows]
+
+    def add_service(self, service: Service) -> int:
+        """Store a registration; returns the new local version."""
+        with self._tx():
+            seq = self._db.execute(
+                "SELECT COALESCE(MAX(seq), 0) + 1 FROM local_services"
+            ).fetchone()[0]
+            try:
+                self._db.execute(
+                    "INSERT INTO local_services(id, seq, body) VALUES (?, ?, ?)",
+                    (service.id, seq, _dumps(service.to_json())),
+                )
+            except sqlite3.IntegrityError:
+                raise StoreError(f"service id {service.id!r} exists already") from None
+            return self._bump_version()
+
+    def remove_service(self, service_id: str) -> int | None:
+        """Remove a registration; returns the new local version, None if there was none."""
+        with self._tx():
+            cur = self._db.execute("DELETE FROM local_services WHERE id = ?", (service_id,))
+            if cur.rowcount == 0:
+                return None
+            return self._bump_version()
+
+    def _bump_version(self) -> int:
+        version = self.local_version() + 1
+        self.set_meta("local_version", str(version))
+        return version
+
+    # -- history map (owner: discovery layer) ----------------------------------------------
+
+    def save_peers(self, records: Iterable[PeerRecord]) -> None:
+        rows = [
+            (
+                r.robot_id,
+                r.address,
+                r.location,
+                r.boot_id,
+                r.version,
+                r.digest,
+                int(r.reachable),
+                r.first_seen,
+                r.last_seen,
+                r.indicator,
+                r.rtt_ms,
+                r.pings,
+                _dumps([s.to_json() for s in r.services]),
+            )
+            for r in records
+        ]
+        if not rows:
+            return
+        with self._tx():
+            self._db.executemany(
+                "INSERT OR REPLACE INTO peers(robot_id, address, location, boot_id, version, "
+                "digest, reachable, first_seen, last_seen, indicator, rtt_ms, pings, services) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                rows,
+            )
+
+    def load_peers(self) -> list[PeerRecord]:
+        rows = self._db.execute(
+            "SELECT robot_id, address, location, boot_id, version, digest, reachable, first_seen, "
+            "last_seen, indicator, rtt_ms, pings, services FROM peers ORDER BY robot_id"
+        ).fetchall()
+        return [
+            PeerRecord(
+                robot_id=r[0],
+                address=r[1],
+                location=r[2],
+                boot_id=r[3],
+                version=r[4],
+                digest=r[5],
+                reachable=bool(r[6]),
+                first_seen=r[7],
+                last_seen=r[8],
+                indicator=r[9],
+                rtt_ms=r[10],
+                pings=r[11],
+                services=tuple(Service.from_json(s) for s in json.loads(r[12])),
+            )
+            for r in rows
+        ]
+
+    def mark_all_unreachable(self) -> None:
+        """At discovery start nothing is known to be reachable yet."""
+        self._db.execute("UPDATE peers SET reachable = 0 WHERE reachable != 0")
+
+    # -- discovery status (owner: discovery layer) -----------------------------------------
+
+    def write_status(self, status: dict[str, Any]) -> None:
+        """Heartbeat, pid, counters and the local view, read by the API for /health, /metrics."""
+        status = {**status, "heartbeat": time.time()}
+        self.set_meta("discovery_status", _dumps(status))
+
+    def read_status(self) -> dict[str, Any]:
+        raw = self.get_meta("discovery_status")
+        if raw is None:
+            return {}
+        obj = json.loads(raw)
+        return obj if isinstance(obj, dict) else {}
+
+    # -- helpers ---------------------------------------------------------------------------
+
+    class _Tx:
+        def __init__(self, db: sqlite3.Connection, immediate: bool) -> None:
+            self._db = db
+            self._begin = "BEGIN IMMEDIATE" if immediate else "BEGIN"
+
+        def __enter__(self) -> None:
+            self._db.execute(self._begin)
+
+        def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+            self._db.execute("COMMIT" if exc_type is None else "ROLLBACK")
+
+    def _tx(self, immediate: bool = True) -> Store._Tx:
+        return Store._Tx(self._db, immediate)
