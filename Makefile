@@ -1,0 +1,44 @@
+# SDfR developer entry points.  `make test` works on a fresh clone: every
+# target that needs Python depends on the bootstrap stamp.
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# netlab/ may not exist yet in a fresh clone
+LINT_PATHS := $(wildcard sdfr netlab tests)
+
+.PHONY: venv test check fmt bench netlab clean distclean
+
+$(STAMP): pyproject.toml
+	bash scripts/bootstrap.sh
+
+venv:
+	bash scripts/bootstrap.sh
+
+test: $(STAMP)
+	$(BIN)/pytest -q tests/
+
+check: $(STAMP)
+	$(BIN)/ruff check $(LINT_PATHS)
+	$(BIN)/ruff format --check $(LINT_PATHS)
+	$(BIN)/mypy --strict sdfr
+
+fmt: $(STAMP)
+	$(BIN)/ruff check --fix $(LINT_PATHS)
+	$(BIN)/ruff format $(LINT_PATHS)
+
+bench: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.api_latency | tee runs/bench-api.json
+
+netlab: $(STAMP)
+	$(BIN)/python -m netlab.demo
+
+clean:
+	find . -path ./$(VENV) -prune -o -type d -name __pycache__ -exec rm -rf {} +
+	rm -rf .pytest_cache .mypy_cache .ruff_cache .hypothesis build dist
+
+distclean: clean
+	rm -rf $(VENV) runs *.egg-info

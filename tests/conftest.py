@@ -1,0 +1,173 @@
+"""Shared test set-up: the ``root`` marker, the leak check and ``nsfleet_factory``.
+
+* Tests marked ``@pytest.mark.root`` are skipped unless we are root and can
+  create a network namespace here (CI runs as root, so there they run).
+* The session fails if a test left behind a network namespace named
+  ``sdfr*`` that did not exist when the session started, or a child process
+  of pytest still running.  Leftovers are reported, then removed/killed by
+  their exact name/pid, so a CI machine is left clean.
+* ``nsfleet_factory(n, **kw)`` returns a set-up ``NsFleet``; all fleets made
+  by a test are torn down after it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from functools import cache
+from typing import Any
+
+import pytest
+from pyroute2 import netns
+
+from tests.nsfleet import PREFIX, NsFleet, name_pid, unique_name
+
+ROOT_SKIP_REASON = "needs root and network namespaces (CI runs as root)"
+
+_baseline_ns: set[str] = set()
+_attributed: dict[str, str] = {}  # leftover (ns name or "pid N") -> first test after which seen
+_leaks: list[str] = []  # filled at session finish, printed in the summary
+
+
+# -- root marker ------------------------------------------------------------
+@cache
+def netns_usable() -> bool:
+    """Root, `ip netns` works, and a namespace can really be created."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        return False
+    try:
+        ok = subprocess.run(
+            ["ip", "netns", "list"], capture_output=True, timeout=10, stdin=subprocess.DEVNULL
+        )
+    except (OSError, subprocess.SubprocessError):
+        return False
+    if ok.returncode != 0:
+        return False
+    probe = f"{unique_name()}-probe"
+    try:
+        netns.create(probe)
+    except Exception:
+        return False
+    finally:
+        if probe in netns.listnetns():
+            netns.remove(probe)
+    return True
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    if item.get_closest_marker("root") is not None and not netns_usable():
+        pytest.skip(ROOT_SKIP_REASON)
+
+
+# -- nsfleet_factory --------------------------------------------------------
+@pytest.fixture
+def nsfleet_factory() -> Iterator[Callable[..., NsFleet]]:
+    """``make(n, subnet=..., macs=..., name=None) -> NsFleet``, already set up."""
+    if not netns_usable():
+        pytest.skip(ROOT_SKIP_REASON)
+    fleets: list[NsFleet] = []
+
+    def make(n: int, name: str | None = None, **kw: Any) -> NsFleet:
+        fleet = NsFleet(name or unique_name(), n, **kw)
+        fleet.__enter__()  # tears itself down if set-up fails
+        fleets.append(fleet)
+        return fleet
+
+    yield make
+    errors = []
+    for fleet in reversed(fleets):
+        try:
+            fleet.close()
+        except Exception as e:
+            errors.append(e)
+    if errors:
+        raise errors[0]
+
+
+# -- leak check -------------------------------------------------------------
+def _sdfr_namespaces() -> set[str]:
+    return {ns for ns in netns.listnetns() if ns.startswith(PREFIX)}
+
+
+def _foreign(ns: str) -> bool:
+    """A namespace named by ``unique_name`` in another live process (a
+    concurrent test session on the same machine) is not ours to judge."""
+    pid = name_pid(ns)
+    if pid is None or pid == os.getpid():
+        return False
+    return os.path.exists(f"/proc/{pid}")
+
+
+def _new_namespaces() -> list[str]:
+    return sorted(ns for ns in _sdfr_namespaces() - _baseline_ns if not _foreign(ns))
+
+
+def _children() -> dict[int, str]:
+    """Running (non-zombie) child processes of this pytest process."""
+    me = os.getpid()
+    out: dict[int, str] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            if fields[0] == "Z" or int(fields[1]) != me:
+                continue
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except (OSError, IndexError, ValueError):
+            continue
+        out[int(entry)] = cmd
+    return out
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    _baseline_ns.update(_sdfr_namespaces())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    yield
+    # Remember after which test a leftover was first seen, for the report.
+    for ns in _new_namespaces():
+        _attributed.setdefault(ns, item.nodeid)
+    for pid in _children():
+        _attributed.setdefault(f"pid {pid}", item.nodeid)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    deadline = time.monotonic() + 2.0
+    children = _children()
+    while children and time.monotonic() < deadline:  # let exiting processes go
+        time.sleep(0.05)
+        children = _children()
+    leaks = _leaks
+    for pid, cmd in sorted(children.items()):
+        where = _attributed.get(f"pid {pid}", "session teardown")
+        leaks.append(f"child process {pid} still running ({cmd!r}), seen after {where}")
+        try:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        except (ProcessLookupError, ChildProcessError, PermissionError):
+            pass
+    for ns in _new_namespaces():
+        where = _attributed.get(ns, "session teardown")
+        leaks.append(f"network namespace {ns} left behind, seen after {where}")
+        with contextlib.suppress(OSError):
+            netns.remove(ns)
+    if leaks and session.exitstatus in (pytest.ExitCode.OK, pytest.ExitCode.NO_TESTS_COLLECTED):
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    if _leaks:
+        terminalreporter.section("leaked resources (session fails)", sep="=", red=True)
+        for line in _leaks:
+            terminalreporter.write_line(line, red=True)
