@@ -30,6 +30,7 @@ CREATE TABLE IF NOT EXISTS local_services (
     seq INTEGER NOT NULL,
     body TEXT NOT NULL
 );
+CREATE INDEX IF NOT EXISTS local_services_seq ON local_services(seq);
 CREATE TABLE IF NOT EXISTS peers (
     robot_id TEXT PRIMARY KEY,
     address TEXT NOT NULL,
@@ -120,6 +121,10 @@ class Store:
         self._db.execute(
             "INSERT OR IGNORE INTO meta(key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),)
         )
+        self.status_path = state_dir / "discovery-status.json"
+        # Parsed service sets by (robot, boot, version, digest): a set never changes under
+        # one key, so a reload after an indicator update parses nothing again.
+        self._parsed: dict[tuple[str, int, int, str], tuple[Service, ...]] = {}
 
     def close(self) -> None:
         self._db.close()
@@ -224,24 +229,33 @@ class Store:
             "SELECT robot_id, address, location, boot_id, version, digest, reachable, first_seen, "
             "last_seen, indicator, rtt_ms, pings, services FROM peers ORDER BY robot_id"
         ).fetchall()
-        return [
-            PeerRecord(
-                robot_id=r[0],
-                address=r[1],
-                location=r[2],
-                boot_id=r[3],
-                version=r[4],
-                digest=r[5],
-                reachable=bool(r[6]),
-                first_seen=r[7],
-                last_seen=r[8],
-                indicator=r[9],
-                rtt_ms=r[10],
-                pings=r[11],
-                services=tuple(Service.from_json(s) for s in json.loads(r[12])),
+        parsed: dict[tuple[str, int, int, str], tuple[Service, ...]] = {}
+        out = []
+        for r in rows:
+            key = (r[0], r[3], r[4], r[5])
+            services = self._parsed.get(key)
+            if services is None:
+                services = tuple(Service.from_json(s) for s in json.loads(r[12]))
+            parsed[key] = services
+            out.append(
+                PeerRecord(
+                    robot_id=r[0],
+                    address=r[1],
+                    location=r[2],
+                    boot_id=r[3],
+                    version=r[4],
+                    digest=r[5],
+                    reachable=bool(r[6]),
+                    first_seen=r[7],
+                    last_seen=r[8],
+                    indicator=r[9],
+                    rtt_ms=r[10],
+                    pings=r[11],
+                    services=services,
+                )
             )
-            for r in rows
-        ]
+        self._parsed = parsed
+        return out
 
     def mark_all_unreachable(self) -> None:
         """At discovery start nothing is known to be reachable yet."""
@@ -250,15 +264,21 @@ class Store:
     # -- discovery status (owner: discovery layer) -----------------------------------------
 
     def write_status(self, status: dict[str, Any]) -> None:
-        """Heartbeat, pid, counters and the local view, read by the API for /health, /metrics."""
+        """Heartbeat, pid, counters and the local view, read by the API for /health, /metrics.
+
+        A file replaced atomically, not a row: a heartbeat every second must not change
+        the database's data_version, which the API uses to know the history map changed.
+        """
         status = {**status, "heartbeat": time.time()}
-        self.set_meta("discovery_status", _dumps(status))
+        tmp = self.status_path.with_suffix(".tmp")
+        tmp.write_text(_dumps(status))
+        tmp.replace(self.status_path)
 
     def read_status(self) -> dict[str, Any]:
-        raw = self.get_meta("discovery_status")
-        if raw is None:
+        try:
+            obj = json.loads(self.status_path.read_text())
+        except (OSError, ValueError):
             return {}
-        obj = json.loads(raw)
         return obj if isinstance(obj, dict) else {}
 
     # -- helpers ---------------------------------------------------------------------------

@@ -1,0 +1,935 @@
+"""The API layer's HTTP applications: the local REST API and the read-only description server.
+
+Both answer from the durable store the discovery layer writes (the paper's shared memory),
+so they keep answering, from the last known state, while discovery is down. Reads are
+cached and revalidated per request with one tiny query: the peers on SQLite's
+`data_version` (it changes when another connection, i.e. the discovery layer, commits),
+the local registrations on their version (bumped by every publish/unpublish, whichever
+connection made it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import secrets
+import socket
+import time
+from bisect import bisect_left
+from collections.abc import Awaitable, Callable, Iterable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from sdfr import __version__
+from sdfr.config import Config
+from sdfr.errors import ValidationError
+from sdfr.model import Service
+from sdfr.store import PeerRecord, Store, StoreError
+from sdfr.wire import check_service_fits
+
+log = logging.getLogger("sdfr.api")
+
+#: A heartbeat older than this means the discovery layer is down (it writes one every second).
+HEARTBEAT_STALE = 3.0
+#: The SDfR message types the discovery layer counts.
+DATAGRAM_TYPES = ("discovery", "response", "update", "alive", "byebye")
+#: Upper bounds (seconds) of the API latency histogram's buckets.
+LATENCY_BUCKETS = (
+    0.0001,
+    0.00025,
+    0.0005,
+    0.001,
+    0.0025,
+    0.005,
+    0.01,
+    0.025,
+    0.05,
+    0.1,
+    0.25,
+    0.5,
+    1.0,
+)
+#: A registration is at most one datagram; a request body never needs more than this.
+MAX_BODY = 64 * 1024
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+# -- errors and JSON ---------------------------------------------------------------------------
+
+
+class RequestError(Exception):
+    """An error answer other than a validation error (422): status, message, field."""
+
+    def __init__(self, status: int, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.field = field
+
+
+def _json_bytes(obj: Any) -> bytes:
+    return json.dumps(obj, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _json_response(
+    body: Any, status: int = 200, headers: Mapping[str, str] | None = None
+) -> web.Response:
+    data = body if isinstance(body, bytes) else _json_bytes(body)
+    return web.Response(
+        body=data, status=status, headers=headers, content_type="application/json", charset="utf-8"
+    )
+
+
+def _error(
+    status: int, message: str, field: str | None = None, headers: Mapping[str, str] | None = None
+) -> web.Response:
+    return _json_response({"error": message, "field": field}, status, headers)
+
+
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"{name} is not valid JSON")
+
+
+async def _read_json(request: web.Request) -> Any:
+    raw = await request.read()
+    if not raw.strip():
+        raise RequestError(400, "the request body is empty; expected a JSON object")
+    try:
+        # NaN and Infinity are not JSON: accepting them would store values no client can read.
+        return json.loads(raw, parse_constant=_reject_constant)
+    except UnicodeDecodeError:
+        raise RequestError(400, "invalid JSON: the body is not UTF-8") from None
+    except ValueError as exc:
+        raise RequestError(400, f"invalid JSON: {exc}") from None
+
+
+def _http_message(exc: web.HTTPException, request: web.Request) -> str:
+    if exc.status == 404:
+        return f"no such endpoint: {request.path}"
+    if exc.status == 405:
+        allowed = exc.headers.get("Allow", "")
+        return f"method {request.method} is not allowed on {request.path}; allowed: {allowed}"
+    text = (exc.text or "").removeprefix(f"{exc.status}: ")
+    return text or exc.reason
+
+
+@web.middleware
+async def _errors_as_json(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """Every error, the router's 404/405 included, is `{"error": ..., "field": ...}`."""
+    try:
+        return await handler(request)
+    except ValidationError as exc:
+        return _error(422, exc.message, exc.field)
+    except RequestError as exc:
+        return _error(exc.status, exc.message, exc.field)
+    except web.HTTPException as exc:
+        if exc.status < 400:
+            raise
+        drop = ("content-type", "content-length")
+        keep = {k: v for k, v in exc.headers.items() if k.lower() not in drop}
+        return _error(exc.status, _http_message(exc, request), None, keep)
+    except Exception:
+        log.exception("%s %s failed", request.method, request.path)
+        return _error(500, "internal error; the daemon's log has the details")
+
+
+# -- discovery notification --------------------------------------------------------------------
+
+
+def notify_discovery(state_dir: Path) -> None:
+    """Wake the discovery layer so it announces a change of the local services at once.
+
+    Best effort: when discovery is down it is told nothing, and it polls the version anyway.
+    """
+    path = str(state_dir / "discovery.sock")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.setblocking(False)
+        try:
+            sock.sendto(b"services\n", path)
+        except (FileNotFoundError, ConnectionRefusedError, BlockingIOError):
+            pass
+        except OSError as exc:
+            log.warning("cannot notify the discovery layer at %s: %s", path, exc)
+
+
+# -- discovery status --------------------------------------------------------------------------
+
+
+def pid_alive(pid: int) -> bool:
+    """True when `pid` runs and is not a zombie."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except PermissionError:
+        pass  # it exists, under another user
+    except OSError:
+        return False
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True  # no procfs: kill(0) is all there is to know
+    # The command name in parentheses may contain anything; the state follows the last ')'.
+    fields = stat.rpartition(")")[2].split()
+    return not fields or fields[0] != "Z"
+
+
+@dataclass(frozen=True, slots=True)
+class DiscoveryState:
+    """The discovery layer as its last status record shows it."""
+
+    up: bool
+    heartbeat_age: float | None
+    status: dict[str, Any]
+
+
+def discovery_state(store: Store, now: float | None = None) -> DiscoveryState:
+    """Up iff the status's pid is alive and its heartbeat is younger than HEARTBEAT_STALE."""
+    status = store.read_status()
+    heartbeat = status.get("heartbeat")
+    age: float | None = None
+    if isinstance(heartbeat, int | float) and not isinstance(heartbeat, bool):
+        age = round((time.time() if now is None else now) - heartbeat, 3)
+    pid = status.get("pid")
+    up = (
+        age is not None
+        and age < HEARTBEAT_STALE
+        and isinstance(pid, int)
+        and not isinstance(pid, bool)
+        and pid_alive(pid)
+    )
+    return DiscoveryState(up=up, heartbeat_age=age, status=status)
+
+
+# -- cached views of the store -----------------------------------------------------------------
+
+
+def _neighbor_json(peer: PeerRecord, services: Iterable[Service]) -> dict[str, Any]:
+    return {
+        "robot_id": peer.robot_id,
+        "address": peer.address,
+        "reachable": peer.reachable,
+        "indicator": peer.indicator,
+        "rtt_ms": peer.rtt_ms,
+        "last_seen": peer.last_seen,
+        "services": [s.to_json() for s in services],
+    }
+
+
+class StoreView:
+    """Reads of the store, cached until the data they come from changes."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._peers_key: int | None = None
+        self._peers: list[PeerRecord] = []
+        self._peer_bodies: dict[str, bytes] = {}
+        self._local_version = -1  # versions start at 0: the first read loads
+        self._local: list[Service] = []
+        self._local_body: bytes | None = None
+
+    def peers(self) -> list[PeerRecord]:
+        """The history map. Only other connections write it, so `data_version` validates it."""
+        # Read before loading: a commit in between costs one more reload, never staleness.
+        key = self.store.data_version()
+        if key != self._peers_key:
+            peers = self.store.load_peers()
+            if peers != self._peers:  # e.g. only the status heartbeat was committed
+                self._peers = peers
+                self._peer_bodies.clear()
+            self._peers_key = key
+        return self._peers
+
+    def peers_body(self, name: str, build: Callable[[list[PeerRecord]], Any]) -> bytes:
+        """A JSON body computed from the peers, serialised once per change of the peers."""
+        peers = self.peers()
+        body = self._peer_bodies.get(name)
+        if body is None:
+            body = self._peer_bodies[name] = _json_bytes(build(peers))
+        return body
+
+    def local(self) -> tuple[int, list[Service]]:
+        """The local registrations and their version."""
+        if self.store.local_version() != self._local_version:
+            self._local_version, self._local = self.store.local_state()
+            self._local_body = None
+        return self._local_version, self._local
+
+    def services_body(self) -> bytes:
+        version, services = self.local()
+        if self._local_body is None:
+            self._local_body = _json_bytes(
+                {"services": [s.to_json() for s in services], "version": version}
+            )
+        return self._local_body
+
+
+# -- API latency -------------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class _Histogram:
+    buckets: list[int] = field(default_factory=lambda: [0] * len(LATENCY_BUCKETS))
+    total: float = 0.0
+    count: int = 0
+
+    def observe(self, seconds: float) -> None:
+        i = bisect_left(LATENCY_BUCKETS, seconds)  # `le` is inclusive
+        if i < len(LATENCY_BUCKETS):
+            self.buckets[i] += 1
+        self.total += seconds
+        self.count += 1
+
+
+@dataclass(slots=True)
+class ApiState:
+    """What the handlers of one application share."""
+
+    cfg: Config
+    view: StoreView
+    latency: dict[tuple[str, str], _Histogram] = field(default_factory=dict)
+
+    @property
+    def store(self) -> Store:
+        return self.view.store
+
+
+STATE = web.AppKey("sdfr_state", ApiState)
+_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
+def _state(request: web.Request) -> ApiState:
+    return request.app[STATE]
+
+
+@web.middleware
+async def _measure(request: web.Request, handler: Handler) -> web.StreamResponse:
+    start = time.perf_counter()
+    try:
+        return await handler(request)
+    finally:
+        resource = request.match_info.route.resource
+        if resource is not None:
+            key = (request.method, resource.canonical)
+        else:  # bound the label sets whatever clients send
+            method = request.method if request.method in _METHODS else "OTHER"
+            key = (method, "unmatched")
+        latency = _state(request).latency
+        hist = latency.get(key)
+        if hist is None:
+            hist = latency[key] = _Histogram()
+        hist.observe(time.perf_counter() - start)
+
+
+# -- handlers: local registrations -------------------------------------------------------------
+
+
+async def publish(request: web.Request) -> web.Response:
+    state = _state(request)
+    obj = await _read_json(request)
+    if isinstance(obj, dict) and "id" in obj:
+        raise ValidationError("id", "is assigned by the robot; leave it out")
+    service = Service.from_json(obj, service_id=secrets.token_hex(6))
+    check_service_fits(service)
+    for _ in range(3):
+        try:
+            version = state.store.add_service(service)
+            break
+        except StoreError:  # the random id exists already: draw another
+            service = replace(service, id=secrets.token_hex(6))
+    else:
+        raise RequestError(500, "could not allocate a service id")
+    notify_discovery(state.cfg.state_dir)
+    log.info("published %s (%s, %s), version %d", service.id, service.name, service.type, version)
+    return _json_response(
+        {"id": service.id, "service": service.to_json(), "version": version},
+        status=201,
+        headers={"Location": f"/services/{service.id}"},
+    )
+
+
+async def unpublish(request: web.Request) -> web.Response:
+    state = _state(request)
+    service_id = request.match_info["id"]
+    version = state.store.remove_service(service_id)
+    if version is None:
+        raise RequestError(404, f"no local service with id {service_id!r}", "id")
+    notify_discovery(state.cfg.state_dir)
+    log.info("unpublished %s, version %d", service_id, version)
+    return web.Response(status=204)
+
+
+async def list_services(request: web.Request) -> web.Response:
+    return _json_response(_state(request).view.services_body())
+
+
+# -- handlers: what discovery found ------------------------------------------------------------
+
+
+def _only_params(request: web.Request, allowed: Iterable[str]) -> None:
+    known = set(allowed)
+    for key in request.query:
+        if key not in known:
+            hint = ", ".join(sorted(known)) or "none"
+            raise ValidationError(key, f"unknown query parameter (known: {hint})")
+
+
+def _flag(request: web.Request, name: str) -> bool:
+    raw = request.query.get(name)
+    if raw is None:
+        return False
+    value = raw.strip().lower()
+    if value in ("1", "true", "yes", ""):
+        return True
+    if value in ("0", "false", "no"):
+        return False
+    raise ValidationError(name, "must be 1/0, true/false or yes/no")
+
+
+def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, Any]:
+    return {
+        "neighbors": [
+            _neighbor_json(p, p.services) for p in peers if include_unreachable or p.reachable
+        ]
+    }
+
+
+async def neighbors(request: web.Request) -> web.Response:
+    _only_params(request, ["all"])
+    include_unreachable = _flag(request, "all")
+    name = "neighbors.all" if include_unreachable else "neighbors"
+    body = _state(request).view.peers_body(
+        name, lambda peers: _neighbors(peers, include_unreachable)
+    )
+    return _json_response(body)
+
+
+def _search_criteria(request: web.Request) -> tuple[str | None, dict[str, str]]:
+    stype: str | None = None
+    attrs: dict[str, str] = {}
+    for key, value in request.query.items():
+        if key == "type":
+            if stype is not None:
+                raise ValidationError("type", "given more than once")
+            if not value:
+                raise ValidationError("type", "must not be empty")
+            stype = value
+        elif key.startswith("attr.") and len(key) > len("attr."):
+            name = key[len("attr.") :]
+            if name in attrs:
+                raise ValidationError(key, "given more than once")
+            attrs[name] = value
+        else:
+            raise ValidationError(
+                key, "unknown query parameter (known: type, attr.KEY for any attribute KEY)"
+            )
+    if stype is None and not attrs:
+        raise ValidationError("type", "give at least one criterion: type=T or attr.KEY=VALUE")
+    return stype, attrs
+
+
+async def search(request: web.Request) -> web.Response:
+    stype, attrs = _search_criteria(request)
+    found = []
+    for peer in _state(request).view.peers():
+        if not peer.reachable:
+            continue
+        matching = [s for s in peer.services if s.matches(stype, attrs)]
+        if matching:
+            found.append(_neighbor_json(peer, matching))
+    return _json_response({"neighbors": found})
+
+
+async def history(request: web.Request) -> web.Response:
+    body = _state(request).view.peers_body(
+        "history", lambda peers: {"robots": [p.to_json() for p in peers]}
+    )
+    return _json_response(body)
+
+
+# -- handlers: this robot ----------------------------------------------------------------------
+
+
+def _robot_id(cfg: Config, status: Mapping[str, Any]) -> str | None:
+    if cfg.robot_id is not None:
+        return cfg.robot_id
+    rid = status.get("robot_id")
+    return rid if isinstance(rid, str) else None
+
+
+def _discovery_json(disc: DiscoveryState) -> dict[str, Any]:
+    status = disc.status
+    return {
+        "up": disc.up,
+        "heartbeat_age": disc.heartbeat_age,
+        "pid": status.get("pid"),
+        "iface": status.get("iface"),
+        "started": status.get("started"),
+        "announced_version": status.get("version"),
+        "peers_reachable": status.get("peers_reachable"),
+        "peers_known": status.get("peers_known"),
+    }
+
+
+async def self_info(request: web.Request) -> web.Response:
+    state = _state(request)
+    disc = discovery_state(state.store)
+    version, services = state.view.local()
+    status = disc.status
+    return _json_response(
+        {
+            "robot_id": _robot_id(state.cfg, status),
+            "fleet": state.cfg.fleet,
+            "iface": state.cfg.iface,
+            "address": status.get("address", ""),
+            "boot_id": status.get("boot_id"),
+            "version": version,
+            "location": status.get("location"),
+            "software": f"sdfr/{__version__}",
+            "services": [s.to_json() for s in services],
+            "discovery": _discovery_json(disc),
+        }
+    )
+
+
+async def health(request: web.Request) -> web.Response:
+    disc = discovery_state(_state(request).store)
+    return _json_response(
+        {
+            "status": "ok" if disc.up else "degraded",
+            "api": "up",
+            "discovery": "up" if disc.up else "down",
+            "discovery_heartbeat_age": disc.heartbeat_age,
+        },
+        status=200 if disc.up else 503,
+    )
+
+
+# -- /metrics ----------------------------------------------------------------------------------
+
+
+def _label(value: object) -> str:
+    return str(value).replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
+
+
+def _number(value: object) -> str:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return "0"
+    return repr(value)
+
+
+def _mapping(value: object) -> Mapping[str, object]:
+    return value if isinstance(value, dict) else {}
+
+
+def metrics_text(state: ApiState) -> str:
+    """The Prometheus text exposition (format 0.0.4)."""
+    disc = discovery_state(state.store)
+    counters = _mapping(disc.status.get("counters"))
+    peers = state.view.peers()
+    _, local = state.view.local()
+    out: list[str] = []
+
+    def family(name: str, kind: str, text: str) -> None:
+        out.append(f"# HELP {name} {text}")
+        out.append(f"# TYPE {name} {kind}")
+
+    family(
+        "sdfr_datagrams_total",
+        "counter",
+        "SDfR datagrams received and sent by the discovery layer, by message type.",
+    )
+    for direction in ("in", "out"):
+        by_type = _mapping(counters.get(f"datagrams_{direction}"))
+        for kind in [*DATAGRAM_TYPES, *sorted(set(by_type) - set(DATAGRAM_TYPES))]:
+            out.append(
+                f'sdfr_datagrams_total{{direction="{direction}",type="{_label(kind)}"}} '
+                f"{_number(by_type.get(kind, 0))}"
+            )
+    family("sdfr_bytes_total", "counter", "UDP payload bytes received and sent.")
+    for direction in ("in", "out"):
+        value = _number(counters.get(f"bytes_{direction}", 0))
+        out.append(f'sdfr_bytes_total{{direction="{direction}"}} {value}')
+    family(
+        "sdfr_rejects_total", "counter", "Datagrams rejected as malformed or foreign, by reason."
+    )
+    for reason, count in sorted(_mapping(counters.get("rejects")).items()):
+        out.append(f'sdfr_rejects_total{{reason="{_label(reason)}"}} {_number(count)}')
+    family("sdfr_peers", "gauge", "Robots in the history map: reachable now, and known ever.")
+    reachable = sum(1 for p in peers if p.reachable)
+    out.append(f'sdfr_peers{{state="reachable"}} {reachable}')
+    out.append(f'sdfr_peers{{state="known"}} {len(peers)}')
+    family("sdfr_local_services", "gauge", "Services this robot publishes.")
+    out.append(f"sdfr_local_services {len(local)}")
+    family("sdfr_discovery_up", "gauge", "1 when the discovery layer is alive and heartbeating.")
+    out.append(f"sdfr_discovery_up {int(disc.up)}")
+    family(
+        "sdfr_api_request_seconds",
+        "histogram",
+        "Time the REST API took to answer, by method and route template.",
+    )
+    for (method, route), hist in sorted(state.latency.items()):
+        labels = f'method="{method}",route="{_label(route)}"'
+        cumulative = 0
+        for bound, n in zip(LATENCY_BUCKETS, hist.buckets, strict=True):
+            cumulative += n
+            out.append(f'sdfr_api_request_seconds_bucket{{{labels},le="{bound}"}} {cumulative}')
+        out.append(f'sdfr_api_request_seconds_bucket{{{labels},le="+Inf"}} {hist.count}')
+        out.append(f"sdfr_api_request_seconds_sum{{{labels}}} {hist.total!r}")
+        out.append(f"sdfr_api_request_seconds_count{{{labels}}} {hist.count}")
+    return "\n".join(out) + "\n"
+
+
+async def metrics(request: web.Request) -> web.Response:
+    body = metrics_text(_state(request)).encode()
+    return web.Response(body=body, headers={"Content-Type": "text/plain; version=0.0.4"})
+
+
+# -- the OpenAPI document ----------------------------------------------------------------------
+
+
+def _ref(name: str) -> dict[str, str]:
+    return {"$ref": f"#/components/schemas/{name}"}
+
+
+def _json_content(schema: dict[str, Any]) -> dict[str, Any]:
+    return {"application/json": {"schema": schema}}
+
+
+def _answer(text: str, schema: str) -> dict[str, Any]:
+    return {"description": text, "content": _json_content(_ref(schema))}
+
+
+_ERROR = _answer("An error; `field` names the offending field or parameter.", "Error")
+_ERRORS_400 = {"400": _ERROR, "422": _ERROR}
+
+
+def openapi_document() -> dict[str, Any]:
+    """The OpenAPI 3.1 description of `create_app`'s routes."""
+    attr_value = {"type": ["string", "number", "integer", "boolean"]}
+    service_fields = {
+        "name": {"type": "string", "minLength": 1, "maxLength": 128},
+        "type": {
+            "type": "string",
+            "pattern": "^[A-Za-z0-9][A-Za-z0-9._:/-]{0,127}$",
+            "description": "What the service is, e.g. `camera/rgb`; searched by equality.",
+        },
+        "url": {"type": ["string", "null"], "maxLength": 256},
+        "attributes": {
+            "type": "object",
+            "maxProperties": 32,
+            "additionalProperties": attr_value,
+            "description": "Capabilities, searched with `attr.KEY=VALUE` (booleans as "
+            "`true`/`false`, numbers in their JSON text).",
+        },
+    }
+    nullable_number = {"type": ["number", "null"]}
+    neighbor_properties: dict[str, Any] = {
+        "robot_id": {"type": "string"},
+        "address": {"type": "string", "description": "IPv4 address on the fleet network"},
+        "reachable": {"type": "boolean"},
+        "indicator": {
+            **nullable_number,
+            "description": "Connection indicator: success rate 0-1 of recent unicast pings",
+        },
+        "rtt_ms": {**nullable_number, "description": "Mean round-trip time of recent pings"},
+        "last_seen": {"type": "number", "description": "Unix time the robot was last heard"},
+        "services": {"type": "array", "items": _ref("Service")},
+    }
+    neighbor = {
+        "type": "object",
+        "required": ["robot_id", "address", "reachable", "indicator", "rtt_ms", "services"],
+        "properties": neighbor_properties,
+    }
+    peer_record = {
+        "type": "object",
+        "required": ["robot_id", "address", "reachable", "boot_id", "version", "services"],
+        "properties": {
+            **neighbor_properties,
+            "location": {"type": "string", "description": "URL of its description"},
+            "boot_id": {"type": "integer"},
+            "version": {"type": "integer", "description": "Version of its service set"},
+            "first_seen": {"type": "number"},
+        },
+    }
+    schemas: dict[str, Any] = {
+        "Error": {
+            "type": "object",
+            "required": ["error", "field"],
+            "properties": {
+                "error": {"type": "string"},
+                "field": {"type": ["string", "null"]},
+            },
+        },
+        "ServiceInput": {
+            "type": "object",
+            "required": ["name", "type"],
+            "additionalProperties": False,
+            "properties": service_fields,
+            "description": "A registration. The robot assigns the id; one service must fit "
+            "in one datagram.",
+        },
+        "Service": {
+            "type": "object",
+            "required": ["id", "name", "type", "url", "attributes"],
+            "properties": {"id": {"type": "string"}, **service_fields},
+        },
+        "Published": {
+            "type": "object",
+            "required": ["id", "service", "version"],
+            "properties": {
+                "id": {"type": "string"},
+                "service": _ref("Service"),
+                "version": {"type": "integer"},
+            },
+        },
+        "Services": {
+            "type": "object",
+            "required": ["services", "version"],
+            "properties": {
+                "services": {"type": "array", "items": _ref("Service")},
+                "version": {
+                    "type": "integer",
+                    "description": "Bumped by every publish and unpublish",
+                },
+            },
+        },
+        "Neighbor": neighbor,
+        "Neighbors": {
+            "type": "object",
+            "required": ["neighbors"],
+            "properties": {"neighbors": {"type": "array", "items": _ref("Neighbor")}},
+        },
+        "PeerRecord": peer_record,
+        "History": {
+            "type": "object",
+            "required": ["robots"],
+            "properties": {"robots": {"type": "array", "items": _ref("PeerRecord")}},
+        },
+        "Self": {
+            "type": "object",
+            "required": ["robot_id", "fleet", "address", "version", "services", "discovery"],
+            "properties": {
+                "robot_id": {"type": ["string", "null"]},
+                "fleet": {"type": "integer"},
+                "iface": {"type": ["string", "null"]},
+                "address": {"type": "string"},
+                "boot_id": {"type": ["integer", "null"]},
+                "version": {"type": "integer"},
+                "location": {"type": ["string", "null"]},
+                "software": {"type": "string"},
+                "services": {"type": "array", "items": _ref("Service")},
+                "discovery": {
+                    "type": "object",
+                    "required": ["up"],
+                    "properties": {
+                        "up": {"type": "boolean"},
+                        "heartbeat_age": nullable_number,
+                        "pid": {"type": ["integer", "null"]},
+                        "iface": {"type": ["string", "null"]},
+                        "started": nullable_number,
+                        "announced_version": {"type": ["integer", "null"]},
+                        "peers_reachable": {"type": ["integer", "null"]},
+                        "peers_known": {"type": ["integer", "null"]},
+                    },
+                },
+            },
+        },
+        "Health": {
+            "type": "object",
+            "required": ["status", "api", "discovery", "discovery_heartbeat_age"],
+            "properties": {
+                "status": {"enum": ["ok", "degraded"]},
+                "api": {"const": "up"},
+                "discovery": {"enum": ["up", "down"]},
+                "discovery_heartbeat_age": nullable_number,
+            },
+        },
+    }
+    paths: dict[str, Any] = {
+        "/services": {
+            "get": {
+                "summary": "This robot's registrations",
+                "responses": {"200": _answer("The local services", "Services")},
+            },
+            "post": {
+                "summary": "Publish a service",
+                "requestBody": {"required": True, "content": _json_content(_ref("ServiceInput"))},
+                "responses": {
+                    "201": {
+                        **_answer("Published", "Published"),
+                        "headers": {
+                            "Location": {"schema": {"type": "string"}, "description": "Its URL"}
+                        },
+                    },
+                    **_ERRORS_400,
+                    "413": _ERROR,
+                },
+            },
+        },
+        "/services/{id}": {
+            "delete": {
+                "summary": "Unpublish a service",
+                "parameters": [
+                    {"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}
+                ],
+                "responses": {"204": {"description": "Unpublished"}, "404": _ERROR},
+            }
+        },
+        "/neighbors": {
+            "get": {
+                "summary": "Robots reachable now, with their services",
+                "parameters": [
+                    {
+                        "name": "all",
+                        "in": "query",
+                        "required": False,
+                        "schema": {"enum": ["1", "0", "true", "false", "yes", "no"]},
+                        "description": "Also the unreachable robots of the history map",
+                    }
+                ],
+                "responses": {"200": _answer("The neighbours", "Neighbors"), "422": _ERROR},
+            }
+        },
+        "/neighbors/search": {
+            "get": {
+                "summary": "Reachable robots offering matching services (only those services)",
+                "description": "At least one criterion. Any number of `attr.KEY=VALUE` "
+                "parameters, one per attribute; a service matches when its type and every "
+                "given attribute are equal.",
+                "parameters": [
+                    {
+                        "name": "type",
+                        "in": "query",
+                        "required": False,
+                        "schema": {"type": "string"},
+                    },
+                    {
+                        "name": "attr.KEY",
+                        "in": "query",
+                        "required": False,
+                        "schema": {"type": "string"},
+                        "description": "Replace KEY by the attribute's name",
+                    },
+                ],
+                "responses": {"200": _answer("The matches", "Neighbors"), "422": _ERROR},
+            }
+        },
+        "/history": {
+            "get": {
+                "summary": "Every robot ever seen, reachable or not",
+                "responses": {"200": _answer("The history map", "History")},
+            }
+        },
+        "/self": {
+            "get": {
+                "summary": "This robot: identity, address, services, discovery state",
+                "responses": {"200": _answer("This robot", "Self")},
+            }
+        },
+        "/health": {
+            "get": {
+                "summary": "Liveness of the two layers",
+                "responses": {
+                    "200": _answer("Both layers up", "Health"),
+                    "503": _answer("The discovery layer is down; the API answers", "Health"),
+                },
+            }
+        },
+        "/openapi.json": {
+            "get": {
+                "summary": "This document",
+                "responses": {"200": {"description": "OpenAPI 3.1", "content": _json_content({})}},
+            }
+        },
+        "/metrics": {
+            "get": {
+                "summary": "Prometheus metrics",
+                "responses": {
+                    "200": {
+                        "description": "Text exposition format 0.0.4",
+                        "content": {"text/plain": {"schema": {"type": "string"}}},
+                    }
+                },
+            }
+        },
+    }
+    for ops in paths.values():
+        for op in ops.values():
+            op["responses"].setdefault("405", _ERROR)
+            op["responses"].setdefault("500", _ERROR)
+    return {
+        "openapi": "3.1.0",
+        "info": {
+            "title": "SDfR local API",
+            "version": __version__,
+            "description": "Publish this robot's services; ask which robots are reachable and "
+            "what they offer. Every answer, errors included, is JSON (except /metrics).",
+        },
+        "paths": paths,
+        "components": {"schemas": schemas},
+    }
+
+
+# -- applications ------------------------------------------------------------------------------
+
+
+def create_app(cfg: Config, store: Store) -> web.Application:
+    """The local REST API."""
+    app = web.Application(middlewares=[_measure, _errors_as_json], client_max_size=MAX_BODY)
+    app[STATE] = ApiState(cfg=cfg, view=StoreView(store))
+    openapi_body = _json_bytes(openapi_document())
+
+    async def openapi(request: web.Request) -> web.Response:
+        return _json_response(openapi_body)
+
+    routes: list[tuple[str, str, Handler]] = [
+        ("GET", "/services", list_services),
+        ("POST", "/services", publish),
+        ("DELETE", "/services/{id}", unpublish),
+        ("GET", "/neighbors", neighbors),
+        ("GET", "/neighbors/search", search),
+        ("GET", "/history", history),
+        ("GET", "/self", self_info),
+        ("GET", "/health", health),
+        ("GET", "/openapi.json", openapi),
+        ("GET", "/metrics", metrics),
+    ]
+    for method, path, handler in routes:
+        app.router.add_route(method, path, handler)
+    return app
+
+
+def create_describe_app(cfg: Config, store: Store) -> web.Application:
+    """The read-only description other robots and SSDP clients fetch from LOCATION."""
+    app = web.Application(middlewares=[_errors_as_json], client_max_size=MAX_BODY)
+    view = StoreView(store)
+    cache: dict[tuple[object, ...], bytes] = {}
+
+    async def describe(request: web.Request) -> web.Response:
+        version, services = view.local()
+        status = store.read_status()
+        key = (version, status.get("robot_id"), status.get("address"), status.get("boot_id"))
+        body = cache.get(key)
+        if body is None:
+            cache.clear()
+            body = cache[key] = _json_bytes(
+                {
+                    "robot_id": _robot_id(cfg, status),
+                    "fleet": cfg.fleet,
+                    "address": status.get("address", ""),
+                    "boot_id": status.get("boot_id"),
+                    "version": version,
+                    "services": [s.to_json() for s in services],
+                }
+            )
+        return _json_response(body)
+
+    app.router.add_route("GET", "/description.json", describe)
+    app.router.add_route("GET", "/", describe)
+    return app

@@ -1,0 +1,359 @@
+"""`sdfr`: the command line of sdfrd's REST API, for humans (tables) and scripts (--json)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from sdfr.client import (
+    Client,
+    neighbors_path,
+    search_path,
+    service_body,
+    service_path,
+    split_api,
+)
+from sdfr.config import DEFAULT_API
+from sdfr.errors import ApiError
+from sdfr.model import AttrValue, attr_text
+
+Row = Sequence[object]
+
+
+# -- argument parsing --------------------------------------------------------------------------
+
+
+def _attr(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key, value
+
+
+def _api(text: str) -> str:
+    try:
+        split_api(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def typed_value(text: str) -> AttrValue:
+    """`true`/`false` as booleans, numbers as numbers, anything else as text.
+
+    A value becomes a boolean or number only when it reads back as the same text, so that
+    searching for the same text finds it (`0.50` and `007` stay strings).
+    """
+    if text in ("true", "false"):
+        return text == "true"
+    for kind in (int, float):
+        try:
+            value = kind(text)
+        except ValueError:
+            continue
+        if math.isfinite(value) and attr_text(value) == text:
+            return value
+    return text
+
+
+def build_parser() -> argparse.ArgumentParser:
+    # --json is accepted before and after the command; SUPPRESS keeps the later from
+    # resetting the earlier.
+    json_flag = argparse.ArgumentParser(add_help=False)
+    json_flag.add_argument(
+        "--json", action="store_true", default=argparse.SUPPRESS, help="print the JSON answer"
+    )
+    p = argparse.ArgumentParser(
+        prog="sdfr",
+        description="Ask the local sdfrd which robots are reachable and what they offer; "
+        "publish this robot's services.",
+        parents=[json_flag],
+    )
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--api",
+        type=_api,
+        default=DEFAULT_API,
+        metavar="HOST:PORT",
+        help=f"sdfrd's REST API (default {DEFAULT_API})",
+    )
+    where.add_argument(
+        "--socket", metavar="PATH", help="sdfrd's unix socket instead (STATE_DIR/api.sock)"
+    )
+    p.add_argument(
+        "--timeout", type=float, default=5.0, metavar="SECONDS", help="default 5 seconds"
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=text, description=text, parents=[json_flag])
+
+    c = command("neighbors", "robots reachable now and their services")
+    c.add_argument("--all", action="store_true", help="also robots out of reach (history)")
+    c = command("publish", "publish a service of this robot; prints its id")
+    c.add_argument("name")
+    c.add_argument("type", help="e.g. camera/rgb")
+    c.add_argument("--url")
+    c.add_argument(
+        "--attr",
+        type=_attr,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an attribute (repeatable); true/false and numbers are typed",
+    )
+    c = command("unpublish", "withdraw a service of this robot")
+    c.add_argument("id")
+    c = command("search", "reachable robots offering matching services")
+    c.add_argument("--type")
+    c.add_argument(
+        "--attr",
+        type=_attr,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an attribute the service must have (repeatable)",
+    )
+    command("history", "every robot ever seen, reachable or not")
+    command("self", "this robot")
+    command("services", "this robot's services")
+    command("health", "whether both layers are up (exit status 1 when degraded)")
+    return p
+
+
+# -- output ------------------------------------------------------------------------------------
+
+
+def table(headers: Sequence[str], rows: Sequence[Row]) -> str:
+    """Columns aligned, two spaces apart."""
+    cells = [[str(c) for c in headers], *[[_cell(c) for c in row] for row in rows]]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in cells]
+    return "\n".join(lines)
+
+
+def _cell(value: object) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return str(value)
+
+
+def _indicator(value: object) -> str:
+    return f"{value:.2f}" if isinstance(value, int | float) else "-"
+
+
+def _rtt(value: object) -> str:
+    return f"{value:.1f} ms" if isinstance(value, int | float) else "-"
+
+
+def _ago(epoch: object, now: float) -> str:
+    if not isinstance(epoch, int | float) or epoch <= 0:
+        return "-"
+    age = max(0.0, now - epoch)
+    if age < 120:
+        return f"{age:.0f}s ago"
+    if age < 7200:
+        return f"{age / 60:.0f}m ago"
+    return f"{age / 3600:.1f}h ago"
+
+
+def _names(services: list[dict[str, Any]], limit: int = 4) -> str:
+    names = [str(s.get("name")) for s in services]
+    if len(names) > limit:
+        return ", ".join(names[:limit]) + f", +{len(names) - limit} more"
+    return ", ".join(names) or "-"
+
+
+def _attrs(attributes: object) -> str:
+    if not isinstance(attributes, dict) or not attributes:
+        return "-"
+    return " ".join(f"{k}={attr_text(v)}" for k, v in attributes.items())
+
+
+def _show_neighbors(answer: dict[str, Any]) -> str:
+    robots = answer["neighbors"]
+    if not robots:
+        return "no reachable robots"
+    return table(
+        ["ROBOT", "ADDRESS", "REACHABLE", "INDICATOR", "RTT", "SERVICES"],
+        [
+            (
+                r["robot_id"],
+                r["address"] or "-",
+                r["reachable"],
+                _indicator(r.get("indicator")),
+                _rtt(r.get("rtt_ms")),
+                _names(r["services"]),
+            )
+            for r in robots
+        ],
+    )
+
+
+def _show_matches(answer: dict[str, Any]) -> str:
+    rows = [
+        (
+            r["robot_id"],
+            r["address"] or "-",
+            s["id"],
+            s["name"],
+            s["type"],
+            s["url"],
+            _attrs(s.get("attributes")),
+        )
+        for r in answer["neighbors"]
+        for s in r["services"]
+    ]
+    if not rows:
+        return "no reachable robot offers a matching service"
+    return table(["ROBOT", "ADDRESS", "ID", "NAME", "TYPE", "URL", "ATTRIBUTES"], rows)
+
+
+def _show_services(answer: dict[str, Any]) -> str:
+    services = answer["services"]
+    if not services:
+        return "no services published"
+    return table(
+        ["ID", "NAME", "TYPE", "URL", "ATTRIBUTES"],
+        [(s["id"], s["name"], s["type"], s["url"], _attrs(s.get("attributes"))) for s in services],
+    )
+
+
+def _show_history(answer: dict[str, Any]) -> str:
+    robots = answer["robots"]
+    if not robots:
+        return "no robot seen yet"
+    now = time.time()
+    return table(
+        ["ROBOT", "ADDRESS", "REACHABLE", "LAST SEEN", "INDICATOR", "RTT", "SERVICES"],
+        [
+            (
+                r["robot_id"],
+                r["address"] or "-",
+                r["reachable"],
+                _ago(r.get("last_seen"), now),
+                _indicator(r.get("indicator")),
+                _rtt(r.get("rtt_ms")),
+                _names(r["services"]),
+            )
+            for r in robots
+        ],
+    )
+
+
+def _show_self(answer: dict[str, Any]) -> str:
+    disc = answer.get("discovery") or {}
+    state = "up" if disc.get("up") else "down"
+    age = disc.get("heartbeat_age")
+    if isinstance(age, int | float):
+        state += f" (last heartbeat {age:.1f}s ago)"
+    pairs = [
+        ("robot", answer.get("robot_id")),
+        ("fleet", answer.get("fleet")),
+        ("address", answer.get("address") or None),
+        ("boot id", answer.get("boot_id")),
+        ("version", answer.get("version")),
+        ("location", answer.get("location")),
+        ("discovery", state),
+    ]
+    lines = [f"{key + ':':<10} {_cell(value)}" for key, value in pairs]
+    return "\n".join(lines) + "\n\n" + _show_services(answer)
+
+
+def _show_health(answer: dict[str, Any]) -> str:
+    age = answer.get("discovery_heartbeat_age")
+    beat = f", last heartbeat {age:.1f}s ago" if isinstance(age, int | float) else ""
+    return f"{answer['status']}: api {answer['api']}, discovery {answer['discovery']}{beat}"
+
+
+# -- commands ----------------------------------------------------------------------------------
+
+Command = Callable[[Client, argparse.Namespace], tuple[Any, str]]
+
+
+def _neighbors(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    answer = client.request("GET", neighbors_path(args.all))
+    return answer, _show_neighbors(answer)
+
+
+def _publish(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    attrs = {key: typed_value(value) for key, value in args.attr}
+    body = service_body(args.name, args.type, args.url, attrs or None)
+    answer = client.request("POST", "/services", body)
+    return answer, str(answer["id"])
+
+
+def _unpublish(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    client.request("DELETE", service_path(args.id))
+    return None, ""
+
+
+def _search(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    answer = client.request("GET", search_path(args.type, dict(args.attr)))
+    return answer, _show_matches(answer)
+
+
+def _get(path: str, show: Callable[[dict[str, Any]], str]) -> Command:
+    def run(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+        answer = client.request("GET", path)
+        return answer, show(answer)
+
+    return run
+
+
+def _health(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    answer = client.health()
+    return answer, _show_health(answer)
+
+
+COMMANDS: dict[str, Command] = {
+    "neighbors": _neighbors,
+    "publish": _publish,
+    "unpublish": _unpublish,
+    "search": _search,
+    "history": _get("/history", _show_history),
+    "self": _get("/self", _show_self),
+    "services": _get("/services", _show_services),
+    "health": _health,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command == "search" and args.type is None and not args.attr:
+            parser.error("search: give --type T and/or --attr KEY=VALUE")
+    except SystemExit as exc:  # usage error (2) or --help (0); argparse printed why
+        return exc.code if isinstance(exc.code, int) else 2
+    try:
+        with Client(args.api, unix_socket=args.socket, timeout=args.timeout) as client:
+            answer, text = COMMANDS[args.command](client, args)
+        if getattr(args, "json", False):
+            if answer is not None:
+                print(json.dumps(answer, indent=2, ensure_ascii=False))
+        elif text:
+            print(text)
+    except ApiError as exc:
+        print(f"sdfr: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # `sdfr history | head`: stop quietly, also at exit's flush
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    if args.command == "health" and answer.get("status") != "ok":
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,159 @@
+"""The API layer's process: the REST API (TCP and STATE_DIR/api.sock) and the description server.
+
+Started by the supervisor with the same flags as `sdfrd`; it lives and dies independently of
+the discovery layer and shares state with it only through the store.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import os
+import signal
+import socket
+import sys
+from pathlib import Path
+
+from aiohttp import web
+
+from sdfr.api import create_app, create_describe_app
+from sdfr.config import Config, from_args, split_hostport
+from sdfr.errors import ConfigError
+from sdfr.store import Store, StoreError
+
+log = logging.getLogger("sdfr.apiserver")
+
+PREFIX = "sdfrd[api]"
+#: Longest a stop waits for requests in flight (they take milliseconds).
+SHUTDOWN_TIMEOUT = 5.0
+#: sockaddr_un's sun_path holds 108 bytes, the terminating NUL included.
+MAX_UNIX_PATH = 107
+
+
+class StartError(Exception):
+    """A listener cannot be opened; the message names the flag or path to fix."""
+
+
+def api_socket_path(state_dir: Path) -> Path:
+    return state_dir / "api.sock"
+
+
+def _bind_error(flag: str, value: str, exc: OSError) -> StartError:
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.EADDRINUSE:
+        reason = "address already in use (another sdfrd, or another program, listens there)"
+    return StartError(f"--{flag} {value}: cannot listen: {reason}")
+
+
+def _clear_stale_socket(path: Path) -> None:
+    """Remove a socket left by a crashed API layer; refuse to steal one that answers."""
+    if len(os.fsencode(path)) > MAX_UNIX_PATH:
+        raise StartError(
+            f"{path}: longer than the {MAX_UNIX_PATH} bytes a unix socket path may have; "
+            "use a shorter --state-dir"
+        )
+    if not path.exists() and not path.is_symlink():
+        return
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(0.5)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            path.unlink(missing_ok=True)
+            return
+    raise StartError(f"{path}: another API layer is serving this state directory")
+
+
+async def _start_tcp(runner: web.AppRunner, flag: str, value: str) -> None:
+    host, port = split_hostport(flag, value)
+    try:
+        await web.TCPSite(runner, host, port).start()
+    except OSError as exc:
+        raise _bind_error(flag.replace("_", "-"), value, exc) from None
+
+
+async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
+    """Serve until `stop` is set."""
+    access_log = logging.getLogger("aiohttp.access") if cfg.log_level == "debug" else None
+    api_runner = web.AppRunner(
+        create_app(cfg, store), access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT
+    )
+    describe_runner = web.AppRunner(
+        create_describe_app(cfg, store), access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT
+    )
+    sock_path = api_socket_path(cfg.state_dir)
+    sock_bound = False
+    try:
+        await api_runner.setup()
+        await describe_runner.setup()
+        await _start_tcp(api_runner, "api", cfg.api)
+        _clear_stale_socket(sock_path)
+        try:
+            await web.UnixSite(api_runner, str(sock_path)).start()
+        except OSError as exc:
+            raise StartError(f"{sock_path}: cannot listen: {exc.strerror or exc}") from None
+        sock_bound = True
+        os.chmod(sock_path, 0o660)
+        await _start_tcp(describe_runner, "describe", cfg.describe)
+        log.info(
+            "serving the API on http://%s and %s, the description on http://%s/description.json",
+            cfg.api,
+            sock_path,
+            cfg.describe,
+        )
+        await stop.wait()
+        log.info("stopping")
+    finally:
+        await describe_runner.cleanup()
+        await api_runner.cleanup()
+        if sock_bound:
+            with contextlib.suppress(OSError):
+                sock_path.unlink()
+
+
+async def _run(cfg: Config, store: Store) -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await serve(cfg, store, stop)
+
+
+def _setup_logging(level: str) -> None:
+    logging.basicConfig(
+        stream=sys.stderr,
+        level=getattr(logging, level.upper()),
+        format=f"%(asctime)s {PREFIX} %(levelname)s %(name)s: %(message)s",
+    )
+
+
+def _fail(message: str) -> int:
+    print(f"{PREFIX}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        cfg = from_args(argv)
+    except ConfigError as exc:
+        return _fail(str(exc))
+    _setup_logging(cfg.log_level)
+    try:
+        store = Store(cfg.state_dir)
+    except StoreError as exc:
+        return _fail(str(exc))
+    try:
+        asyncio.run(_run(cfg, store))
+    except (StartError, ConfigError, StoreError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:  # before the signal handlers were installed
+        return 130
+    finally:
+        store.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

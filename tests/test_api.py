@@ -1,0 +1,563 @@
+"""The REST API and the description server, in-process (aiohttp's test server, a temp store)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from aiohttp import web
+from aiohttp.test_utils import TestClient, TestServer
+
+from sdfr.api import (
+    HEARTBEAT_STALE,
+    create_app,
+    create_describe_app,
+    notify_discovery,
+    openapi_document,
+    pid_alive,
+)
+from sdfr.config import Config
+from sdfr.model import Service
+from sdfr.store import PeerRecord, Store
+
+
+def aio(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:
+    """Run an async test in its own event loop (no pytest-asyncio here); fixtures still apply."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> None:
+        asyncio.run(fn(*args, **kwargs))
+
+    return run
+
+
+@contextlib.asynccontextmanager
+async def serve(app: web.Application) -> AsyncIterator[TestClient[web.Request, web.Application]]:
+    async with TestClient(TestServer(app)) as client:
+        yield client
+
+
+@pytest.fixture
+def cfg(tmp_path: Path) -> Config:
+    return Config(state_dir=tmp_path, robot_id="r1", iface="lo", fleet=7)
+
+
+@pytest.fixture
+def store(cfg: Config) -> Iterator[Store]:
+    s = Store(cfg.state_dir)
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def discovery_store(cfg: Config) -> Iterator[Store]:
+    """A second connection, as the discovery layer's process has."""
+    s = Store(cfg.state_dir)
+    yield s
+    s.close()
+
+
+def service(sid: str, stype: str, **attrs: Any) -> Service:
+    return Service(id=sid, name=f"{stype} {sid}", type=stype, url=None, attributes=attrs)
+
+
+def peer(robot_id: str, reachable: bool, *services: Service) -> PeerRecord:
+    now = time.time()
+    return PeerRecord(
+        robot_id=robot_id,
+        address=f"10.7.0.{len(robot_id)}",
+        location=f"http://10.7.0.{len(robot_id)}:8701/description.json",
+        boot_id=1,
+        version=2,
+        digest="d" * 16,
+        reachable=reachable,
+        first_seen=now - 60,
+        last_seen=now - (0 if reachable else 45),
+        indicator=0.9 if reachable else 0.0,
+        rtt_ms=1.25 if reachable else None,
+        pings=10,
+        services=services,
+    )
+
+
+FLEET = [
+    peer(
+        "alpha",
+        True,
+        service("a1", "camera/rgb", fps=30, color=True),
+        service("a2", "lidar", range=40.5),
+    ),
+    peer("bravo", True, service("b1", "camera/rgb", fps=15, color=False)),
+    peer("charlie", False, service("c1", "camera/rgb", fps=30, color=True)),
+]
+
+
+# -- local registrations -----------------------------------------------------------------------
+
+
+@aio
+async def test_publish_list_unpublish(cfg: Config, store: Store) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        body: dict[str, Any] = {"name": "front cam", "type": "camera/rgb", "url": "rtsp://x/1"}
+        body["attributes"] = {"fps": 30, "hdr": True}
+        r = await c.post("/services", json=body)
+        assert r.status == 201
+        assert r.headers["Content-Type"] == "application/json; charset=utf-8"
+        created = await r.json()
+        sid = created["id"]
+        assert re.fullmatch(r"[0-9a-f]{12}", sid)
+        assert r.headers["Location"] == f"/services/{sid}"
+        assert created["service"] == {"id": sid, **body}
+        assert created["version"] == 1
+
+        r = await c.get("/services")
+        assert await r.json() == {"services": [created["service"]], "version": 1}
+
+        r = await c.delete(f"/services/{sid}")
+        assert r.status == 204
+        r = await c.get("/services")
+        assert await r.json() == {"services": [], "version": 2}
+
+        r = await c.delete(f"/services/{sid}")
+        assert r.status == 404
+        assert (await r.json())["field"] == "id"
+    # Durable: a fresh connection (another process) sees the registrations' state.
+    assert store.local_state() == (2, [])
+
+
+BIG = {f"k{i}": "v" * 250 for i in range(10)}
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "field"),
+    [
+        ({"type": "camera"}, 422, "name"),
+        ({"name": "", "type": "camera"}, 422, "name"),
+        ({"name": "x", "type": "has space"}, 422, "type"),
+        ({"name": "x"}, 422, "type"),
+        ({"name": "x", "type": "t", "attributes": [1, 2]}, 422, "attributes"),
+        ({"name": "x", "type": "t", "attributes": {"a": {"b": 1}}}, 422, "attributes.a"),
+        ({"name": "x", "type": "t", "colour": "red"}, 422, "colour"),
+        ({"name": "x", "type": "t", "id": "mine"}, 422, "id"),
+        ({"name": "x", "type": "t", "url": 5}, 422, "url"),
+        ({"name": "x", "type": "t", "attributes": BIG}, 422, "service"),
+        ([{"name": "x", "type": "t"}], 422, "body"),
+        ("{not json", 400, None),
+        ('{"name": "x", "type": "t", "attributes": {"a": NaN}}', 400, None),
+        ("", 400, None),
+    ],
+)
+@aio
+async def test_publish_rejects_naming_the_field(
+    cfg: Config, store: Store, body: Any, status: int, field: str | None
+) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        data = body if isinstance(body, str) else json.dumps(body)
+        r = await c.post("/services", data=data, headers={"Content-Type": "application/json"})
+        assert r.status == status
+        answer = await r.json()
+        assert answer["field"] == field
+        assert isinstance(answer["error"], str) and answer["error"]
+        assert store.local_state() == (0, [])
+
+
+@aio
+async def test_unknown_paths_and_methods_answer_json(cfg: Config, store: Store) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.get("/nope")
+        assert r.status == 404
+        assert r.content_type == "application/json"
+        assert (await r.json())["field"] is None
+        r = await c.put("/services")
+        assert r.status == 405
+        assert set(r.headers["Allow"].split(",")) == {"GET", "POST"}
+        assert "PUT" in (await r.json())["error"]
+        r = await c.post("/services", data=b"x" * 100_000)
+        assert r.status == 413
+        assert "error" in await r.json()
+
+
+# -- neighbours, search, history ---------------------------------------------------------------
+
+
+@aio
+async def test_neighbors_are_the_reachable_robots(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    discovery_store.save_peers(FLEET)
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.get("/neighbors")
+        robots = (await r.json())["neighbors"]
+        assert [n["robot_id"] for n in robots] == ["alpha", "bravo"]
+        assert set(robots[0]) == {
+            "robot_id",
+            "address",
+            "reachable",
+            "indicator",
+            "rtt_ms",
+            "last_seen",
+            "services",
+        }
+        assert robots[0]["services"][0] == FLEET[0].services[0].to_json()
+        assert robots[0]["indicator"] == 0.9 and robots[0]["rtt_ms"] == 1.25
+
+        r = await c.get("/neighbors", params={"all": "1"})
+        robots = (await r.json())["neighbors"]
+        assert [(n["robot_id"], n["reachable"]) for n in robots] == [
+            ("alpha", True),
+            ("bravo", True),
+            ("charlie", False),
+        ]
+        for query, field in [({"all": "maybe"}, "all"), ({"since": "1"}, "since")]:
+            r = await c.get("/neighbors", params=query)
+            assert r.status == 422
+            assert (await r.json())["field"] == field
+
+
+async def _search(c: TestClient[web.Request, web.Application], query: str) -> dict[str, list[str]]:
+    r = await c.get("/neighbors/search?" + query)
+    assert r.status == 200, await r.text()
+    return {n["robot_id"]: [s["id"] for s in n["services"]] for n in (await r.json())["neighbors"]}
+
+
+@aio
+async def test_search_by_type_and_attributes(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    discovery_store.save_peers(FLEET)
+    async with serve(create_app(cfg, store)) as c:
+        # Only reachable robots, each with only its matching services.
+        assert await _search(c, "type=camera/rgb") == {"alpha": ["a1"], "bravo": ["b1"]}
+        assert await _search(c, "type=lidar") == {"alpha": ["a2"]}
+        assert await _search(c, "attr.fps=30") == {"alpha": ["a1"]}
+        assert await _search(c, "attr.color=false") == {"bravo": ["b1"]}
+        assert await _search(c, "attr.range=40.5") == {"alpha": ["a2"]}
+        assert await _search(c, "type=camera/rgb&attr.fps=15&attr.color=false") == {"bravo": ["b1"]}
+        assert await _search(c, "type=camera/rgb&attr.fps=60") == {}
+        assert await _search(c, "type=nothing") == {}
+
+
+@pytest.mark.parametrize(
+    ("query", "field"),
+    [
+        ("", "type"),
+        ("type=", "type"),
+        ("type=a&type=b", "type"),
+        ("kind=camera", "kind"),
+        ("type=camera&attr.=1", "attr."),
+        ("attr.fps=1&attr.fps=2", "attr.fps"),
+    ],
+)
+@aio
+async def test_search_rejects_bad_queries(
+    cfg: Config, store: Store, query: str, field: str
+) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.get("/neighbors/search?" + query)
+        assert r.status == 422
+        assert (await r.json())["field"] == field
+
+
+@aio
+async def test_history_lists_every_robot_ever_seen(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    discovery_store.save_peers(FLEET)
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.get("/history")
+        assert await r.json() == {"robots": [p.to_json() for p in FLEET]}
+
+
+@aio
+async def test_peer_cache_follows_the_other_connection(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    loads = 0
+    load_peers = store.load_peers
+
+    def counting() -> list[PeerRecord]:
+        nonlocal loads
+        loads += 1
+        return load_peers()
+
+    store.load_peers = counting  # type: ignore[method-assign]
+    async with serve(create_app(cfg, store)) as c:
+        discovery_store.save_peers(FLEET[:1])
+        for _ in range(3):
+            r = await c.get("/neighbors")
+            assert [n["robot_id"] for n in (await r.json())["neighbors"]] == ["alpha"]
+        await c.get("/history")
+        assert loads == 1  # nothing changed: neither re-read nor re-serialised
+
+        discovery_store.save_peers([FLEET[1], peer("alpha", False)])
+        r = await c.get("/neighbors")
+        assert [n["robot_id"] for n in (await r.json())["neighbors"]] == ["bravo"]
+        assert loads == 2
+
+        # A commit that leaves the peers alone (the status heartbeat) keeps the answers.
+        discovery_store.write_status({"pid": os.getpid()})
+        r = await c.get("/neighbors")
+        assert [n["robot_id"] for n in (await r.json())["neighbors"]] == ["bravo"]
+
+
+# -- this robot, health ------------------------------------------------------------------------
+
+
+def status(**extra: Any) -> dict[str, Any]:
+    return {
+        "pid": os.getpid(),
+        "robot_id": "r1",
+        "fleet": 7,
+        "iface": "lo",
+        "address": "10.7.3.4",
+        "boot_id": 5,
+        "version": 0,
+        "started": time.time() - 10,
+        "location": "http://10.7.3.4:8701/description.json",
+        "peers_reachable": 2,
+        "peers_known": 3,
+        "counters": {
+            "datagrams_in": {"discovery": 1, "response": 2, "update": 3, "alive": 7, "byebye": 0},
+            "datagrams_out": {"discovery": 1, "response": 0, "update": 1, "alive": 9, "byebye": 0},
+            "bytes_in": 4200,
+            "bytes_out": 3100,
+            "rejects": {"bad-fleet": 2, 'odd"reason': 1},
+        },
+        **extra,
+    }
+
+
+@aio
+async def test_self_describes_this_robot(cfg: Config, store: Store, discovery_store: Store) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.get("/self")
+        me = await r.json()
+        assert me["robot_id"] == "r1" and me["fleet"] == 7 and me["address"] == ""
+        assert me["discovery"]["up"] is False
+        await c.post("/services", json={"name": "arm", "type": "manipulator"})
+        discovery_store.write_status(status())
+        r = await c.get("/self")
+        me = await r.json()
+        assert me["address"] == "10.7.3.4" and me["boot_id"] == 5 and me["version"] == 1
+        assert me["location"] == "http://10.7.3.4:8701/description.json"
+        assert [s["name"] for s in me["services"]] == ["arm"]
+        assert me["discovery"]["up"] is True
+        assert me["discovery"]["pid"] == os.getpid()
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+@aio
+async def test_health_follows_the_discovery_heartbeat(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.get("/health")  # discovery never ran
+        assert r.status == 503
+        assert await r.json() == {
+            "status": "degraded",
+            "api": "up",
+            "discovery": "down",
+            "discovery_heartbeat_age": None,
+        }
+
+        discovery_store.write_status(status())
+        r = await c.get("/health")
+        assert r.status == 200
+        answer = await r.json()
+        assert answer["status"] == "ok" and answer["discovery"] == "up"
+        assert 0 <= answer["discovery_heartbeat_age"] < 1
+
+        discovery_store.write_status(status(pid=_dead_pid()))
+        r = await c.get("/health")
+        assert r.status == 503
+        assert (await r.json())["discovery"] == "down"
+
+        stale = {**status(), "heartbeat": time.time() - HEARTBEAT_STALE - 1}
+        discovery_store.status_path.write_text(json.dumps(stale))
+        r = await c.get("/health")
+        assert r.status == 503
+        assert (await r.json())["discovery_heartbeat_age"] > HEARTBEAT_STALE
+
+        # Degraded, the API still answers from the last known state.
+        r = await c.get("/self")
+        assert (await r.json())["address"] == "10.7.3.4"
+
+
+def test_pid_alive_treats_a_zombie_as_dead() -> None:
+    assert pid_alive(os.getpid())
+    zombie = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        deadline = time.monotonic() + 10
+        while pid_alive(zombie.pid):  # exited but not reaped: a zombie
+            assert time.monotonic() < deadline, "the child never became a zombie"
+            time.sleep(0.01)
+        os.kill(zombie.pid, 0)  # still in the process table
+    finally:
+        zombie.wait()
+    assert not pid_alive(zombie.pid)
+    assert not pid_alive(0)
+
+
+# -- /metrics, /openapi.json -------------------------------------------------------------------
+
+SAMPLE = re.compile(
+    r'^(?P<name>[a-zA-Z_:][a-zA-Z0-9_:]*)(?:\{(?P<labels>(?:[a-z_]+="(?:[^"\\]|\\.)*",?)*)\})? '
+    r"(?P<value>[-+0-9.eE]+|\+Inf|NaN)$"
+)
+
+
+def parse_metrics(text: str) -> dict[str, float]:
+    """Every line is a HELP, a TYPE or a sample; samples keyed by name{labels}."""
+    samples: dict[str, float] = {}
+    typed: set[str] = set()
+    for line in text.splitlines():
+        if line.startswith("# HELP "):
+            continue
+        if line.startswith("# TYPE "):
+            _, _, name, kind = line.split(" ", 3)
+            assert kind in ("counter", "gauge", "histogram"), line
+            typed.add(name)
+            continue
+        m = SAMPLE.match(line)
+        assert m, f"not a sample: {line!r}"
+        family = re.sub(r"_(bucket|sum|count)$", "", m["name"])
+        assert m["name"] in typed or family in typed, f"no TYPE before {line!r}"
+        key = m["name"] + (f"{{{m['labels']}}}" if m["labels"] else "")
+        samples[key] = float(m["value"])
+    return samples
+
+
+@aio
+async def test_metrics_exposition(cfg: Config, store: Store, discovery_store: Store) -> None:
+    discovery_store.save_peers(FLEET)
+    discovery_store.write_status(status())
+    async with serve(create_app(cfg, store)) as c:
+        await c.post("/services", json={"name": "arm", "type": "manipulator"})
+        await c.get("/neighbors")
+        r = await c.get("/metrics")
+        assert r.status == 200
+        assert r.headers["Content-Type"] == "text/plain; version=0.0.4"
+        samples = parse_metrics(await r.text())
+    assert samples['sdfr_datagrams_total{direction="in",type="alive"}'] == 7
+    assert samples['sdfr_datagrams_total{direction="out",type="byebye"}'] == 0
+    assert samples['sdfr_bytes_total{direction="out"}'] == 3100
+    assert samples['sdfr_rejects_total{reason="bad-fleet"}'] == 2
+    assert samples['sdfr_rejects_total{reason="odd\\"reason"}'] == 1
+    assert samples['sdfr_peers{state="reachable"}'] == 2
+    assert samples['sdfr_peers{state="known"}'] == 3
+    assert samples["sdfr_local_services"] == 1
+    assert samples["sdfr_discovery_up"] == 1
+    labels = 'method="GET",route="/neighbors"'
+    assert samples[f"sdfr_api_request_seconds_count{{{labels}}}"] == 1
+    assert samples[f'sdfr_api_request_seconds_bucket{{{labels},le="+Inf"}}'] == 1
+    assert samples[f"sdfr_api_request_seconds_sum{{{labels}}}"] > 0
+    assert 'sdfr_api_request_seconds_count{method="POST",route="/services"}' in samples
+
+
+@aio
+async def test_openapi_documents_exactly_the_routes(cfg: Config, store: Store) -> None:
+    app = create_app(cfg, store)
+    routes = {(r.method, r.resource.canonical) for r in app.router.routes() if r.resource}
+    doc = openapi_document()
+    documented = {(m.upper(), path) for path, ops in doc["paths"].items() for m in ops}
+    assert routes == documented
+    assert doc["openapi"].startswith("3.1")
+
+    # Every reference resolves, and every error answer is the error schema.
+    def refs(node: Any) -> Iterator[str]:
+        if isinstance(node, dict):
+            if "$ref" in node:
+                yield node["$ref"]
+            for value in node.values():
+                yield from refs(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from refs(value)
+
+    for ref in refs(doc):
+        assert ref.removeprefix("#/components/schemas/") in doc["components"]["schemas"], ref
+    for ops in doc["paths"].values():
+        for op in ops.values():
+            for code, answer in op["responses"].items():
+                if code.startswith(("4", "5")) and code != "503":
+                    schema = answer["content"]["application/json"]["schema"]
+                    assert schema == {"$ref": "#/components/schemas/Error"}
+    async with serve(app) as c:
+        r = await c.get("/openapi.json")
+        assert await r.json() == doc
+
+
+# -- the description server, discovery notification --------------------------------------------
+
+
+@aio
+async def test_describe_app_is_read_only_and_current(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    discovery_store.write_status(status())
+    async with (
+        serve(create_app(cfg, store)) as api,
+        serve(create_describe_app(cfg, store)) as describe,
+    ):
+        r = await describe.get("/description.json")
+        assert await r.json() == {
+            "robot_id": "r1",
+            "fleet": 7,
+            "address": "10.7.3.4",
+            "boot_id": 5,
+            "version": 0,
+            "services": [],
+        }
+        # A publish through the API (same connection, so no data_version change) shows at once.
+        r = await api.post("/services", json={"name": "arm", "type": "manipulator"})
+        sid = (await r.json())["id"]
+        for path in ("/description.json", "/"):
+            r = await describe.get(path)
+            desc = await r.json()
+            assert desc["version"] == 1 and [s["id"] for s in desc["services"]] == [sid]
+        r = await describe.post("/description.json", json={})
+        assert r.status == 405 and "error" in await r.json()
+        r = await describe.get("/services")
+        assert r.status == 404 and "error" in await r.json()
+
+
+def test_notify_discovery_sends_a_datagram(tmp_path: Path) -> None:
+    notify_discovery(tmp_path)  # nobody listening: silently nothing
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as listener:
+        listener.bind(str(tmp_path / "discovery.sock"))
+        listener.settimeout(5)
+        notify_discovery(tmp_path)
+        assert listener.recv(64) == b"services\n"
+    notify_discovery(tmp_path)  # a socket file nobody reads any more: refused, ignored
+
+
+@aio
+async def test_publish_and_unpublish_wake_discovery(cfg: Config, store: Store) -> None:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as listener:
+        listener.bind(str(cfg.state_dir / "discovery.sock"))
+        listener.setblocking(False)
+        async with serve(create_app(cfg, store)) as c:
+            r = await c.post("/services", json={"name": "arm", "type": "manipulator"})
+            assert listener.recv(64) == b"services\n"
+            await c.delete(f"/services/{(await r.json())['id']}")
+            assert listener.recv(64) == b"services\n"
+            await c.post("/services", json={"name": ""})  # rejected: nothing to announce
+            with pytest.raises(BlockingIOError):
+                listener.recv(64)

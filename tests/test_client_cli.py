@@ -1,0 +1,388 @@
+"""The API layer as a real process, driven through `sdfr.client.Client` and the `sdfr` command."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from sdfr.cli import main as sdfr
+from sdfr.cli import typed_value
+from sdfr.client import Client
+from sdfr.errors import ApiError
+from sdfr.model import Service
+from sdfr.store import PeerRecord, Store
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+class ApiLayer:
+    """`python -m sdfr.daemon.apiserver` on a state directory; always stopped by its owner."""
+
+    def __init__(self, state_dir: Path, api_port: int | None = None) -> None:
+        self.state_dir = state_dir
+        self.api = f"127.0.0.1:{api_port or free_port()}"
+        self.describe = f"127.0.0.1:{free_port()}"
+        self.socket = state_dir / "api.sock"
+        self.log = state_dir / "apiserver.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def argv(self) -> list[str]:
+        return [
+            sys.executable,
+            "-m",
+            "sdfr.daemon.apiserver",
+            "--state-dir",
+            str(self.state_dir),
+            "--api",
+            self.api,
+            "--describe",
+            self.describe,
+            "--robot-id",
+            "r1",
+            "--iface",
+            "lo",
+        ]
+
+    def start(self, timeout: float = 20.0) -> None:
+        with self.log.open("ab") as log:
+            self.proc = subprocess.Popen(self.argv(), stdout=log, stderr=log)
+        deadline = time.monotonic() + timeout
+        with Client(self.api, timeout=1.0) as client:
+            while True:
+                if self.proc.poll() is not None:
+                    pytest.fail(f"apiserver exited with {self.proc.returncode}: {self.logs()}")
+                try:
+                    client.health()  # 503 while discovery is down: still an answer
+                    return
+                except ApiError as exc:
+                    if exc.status != 0 or time.monotonic() > deadline:
+                        self.stop()
+                        pytest.fail(f"apiserver not ready: {exc}; log: {self.logs()}")
+                time.sleep(0.05)
+
+    def kill(self) -> None:
+        assert self.proc is not None
+        self.proc.kill()
+        self.proc.wait(timeout=10)
+
+    def stop(self) -> int | None:
+        """SIGTERM, then SIGKILL if it lingers; the exit status."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        return self.proc.returncode
+
+    def logs(self) -> str:
+        return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+
+@pytest.fixture
+def layer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiLayer]:
+    # A short path: a unix socket's path is limited to 107 bytes.
+    api = ApiLayer(tmp_path_factory.mktemp("api"))
+    api.start()
+    try:
+        yield api
+    finally:
+        api.stop()
+
+
+def save_fleet(state_dir: Path) -> None:
+    """What the discovery layer would have found: two reachable robots, one out of reach."""
+    now = time.time()
+
+    def robot(rid: str, reachable: bool, *services: Service) -> PeerRecord:
+        return PeerRecord(
+            robot_id=rid,
+            address=f"10.1.0.{len(rid)}",
+            location=f"http://10.1.0.{len(rid)}:8701/description.json",
+            boot_id=1,
+            version=1,
+            digest="0" * 16,
+            reachable=reachable,
+            first_seen=now - 100,
+            last_seen=now - (1 if reachable else 80),
+            indicator=0.95 if reachable else None,
+            rtt_ms=2.5 if reachable else None,
+            pings=10,
+            services=services,
+        )
+
+    cam = Service("c1", "front camera", "camera/rgb", None, {"fps": 30, "frame-rate": 30})
+    lidar = Service("l1", "lidar", "lidar", "udp://10.1.0.4:2368", {})
+    store = Store(state_dir)
+    try:
+        store.save_peers(
+            [
+                robot("atlas", True, cam, lidar),
+                robot("bee", True, Service("c2", "cam", "camera/rgb", None, {"fps": 15})),
+                robot("gone", False, Service("c3", "old cam", "camera/rgb", None, {"fps": 30})),
+            ]
+        )
+    finally:
+        store.close()
+
+
+def write_healthy_status(state_dir: Path) -> None:
+    store = Store(state_dir)
+    try:
+        store.write_status({"pid": os.getpid(), "robot_id": "r1", "address": "10.1.9.9"})
+    finally:
+        store.close()
+
+
+# -- the Python client -------------------------------------------------------------------------
+
+
+def test_client_over_tcp_and_unix_socket(layer: ApiLayer) -> None:
+    save_fleet(layer.state_dir)
+    with (
+        Client(layer.api) as tcp,
+        Client(unix_socket=layer.socket) as unix,
+    ):
+        sid = tcp.publish("arm", "manipulator", url="ros://arm", attributes={"dof": 6})
+        assert [s["id"] for s in unix.services()] == [sid]
+        assert unix.services()[0]["attributes"] == {"dof": 6}
+
+        for client in (tcp, unix):
+            assert [n["robot_id"] for n in client.neighbors()] == ["atlas", "bee"]
+            assert len(client.neighbors(include_unreachable=True)) == 3
+            assert [h["robot_id"] for h in client.history()] == ["atlas", "bee", "gone"]
+            found = client.search("camera/rgb", fps=30)
+            assert [(n["robot_id"], [s["id"] for s in n["services"]]) for n in found] == [
+                ("atlas", ["c1"])
+            ]
+            assert [n["robot_id"] for n in client.search(attrs={"frame-rate": 30})] == ["atlas"]
+            assert [n["robot_id"] for n in client.search("lidar")] == ["atlas"]
+            me = client.self_info()
+            assert me["robot_id"] == "r1" and me["discovery"]["up"] is False
+            health = client.health()  # 503: the body all the same
+            assert health["status"] == "degraded" and health["api"] == "up"
+            assert "sdfr_local_services 1" in client.metrics()
+
+        with pytest.raises(ApiError) as err:
+            tcp.publish("", "manipulator")
+        assert (err.value.status, err.value.field) == (422, "name")
+        with pytest.raises(ApiError) as err:
+            unix.request("GET", "/neighbors?x=1")
+        assert (err.value.status, err.value.field) == (422, "x")
+
+        unix.unpublish(sid)
+        assert tcp.services() == []
+        with pytest.raises(ApiError) as err:
+            tcp.unpublish(sid)
+        assert err.value.status == 404
+
+
+def test_client_reports_an_unreachable_daemon(tmp_path: Path) -> None:
+    port = free_port()
+    with pytest.raises(ApiError) as err:
+        Client(f"127.0.0.1:{port}").services()
+    assert err.value.status == 0
+    assert str(err.value).startswith(f"cannot reach sdfrd at 127.0.0.1:{port}: ")
+    with pytest.raises(ApiError) as err:
+        Client(unix_socket=tmp_path / "api.sock").health()
+    assert err.value.status == 0
+    assert str(tmp_path / "api.sock") in str(err.value)
+
+
+def test_registrations_survive_a_killed_api_layer(layer: ApiLayer) -> None:
+    with Client(layer.api) as client:
+        ids = [client.publish(f"s{i}", "thing", attributes={"i": i}) for i in range(3)]
+        client.unpublish(ids[1])
+        layer.kill()
+        with pytest.raises(ApiError):
+            client.services()
+        assert layer.socket.exists()  # left behind by SIGKILL: the restart must replace it
+        layer.start()
+        # The same client reconnects; the state is the one before the kill.
+        assert [s["id"] for s in client.services()] == [ids[0], ids[2]]
+        assert client.self_info()["version"] == 4
+    with Client(unix_socket=layer.socket) as unix:
+        assert len(unix.services()) == 2
+        # A keep-alive connection the server dropped meanwhile: retried once, transparently.
+        layer.kill()
+        layer.start()
+        assert len(unix.services()) == 2
+
+
+# -- the apiserver process ---------------------------------------------------------------------
+
+
+def test_apiserver_stops_cleanly_on_sigterm(layer: ApiLayer) -> None:
+    assert layer.proc is not None
+    assert layer.socket.stat().st_mode & 0o777 == 0o660
+    layer.proc.send_signal(signal.SIGTERM)
+    assert layer.proc.wait(timeout=10) == 0
+    assert not layer.socket.exists()
+    assert "Traceback" not in layer.logs()
+
+
+def test_apiserver_port_in_use_is_one_line(tmp_path: Path) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        api = ApiLayer(tmp_path, api_port=busy.getsockname()[1])
+        done = subprocess.run(api.argv(), capture_output=True, text=True, timeout=30)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert f"--api {api.api}" in lines[0] and "already in use" in lines[0]
+
+
+def test_apiserver_bad_flag_value_is_one_line(tmp_path: Path) -> None:
+    argv = [sys.executable, "-m", "sdfr.daemon.apiserver", "--state-dir", str(tmp_path)]
+    done = subprocess.run([*argv, "--fleet", "300"], capture_output=True, text=True, timeout=30)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [done.stderr.strip()]
+    assert "fleet" in done.stderr
+
+
+# -- the sdfr command --------------------------------------------------------------------------
+
+
+def test_cli_publish_services_and_unpublish(
+    layer: ApiLayer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["--api", layer.api, "publish", "front cam", "camera/rgb", "--url", "rtsp://cam"]
+    argv += ["--attr", "fps=30", "--attr", "hdr=true", "--attr", "model=x-1", "--attr", "gain=0.5"]
+    assert sdfr(argv) == 0
+    sid = capsys.readouterr().out.strip()
+    with Client(layer.api) as client:
+        [published] = client.services()
+    assert published["id"] == sid
+    assert published["attributes"] == {"fps": 30, "hdr": True, "model": "x-1", "gain": 0.5}
+
+    assert sdfr(["--socket", str(layer.socket), "services"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split() == ["ID", "NAME", "TYPE", "URL", "ATTRIBUTES"]
+    assert out[1].startswith(sid) and "fps=30 hdr=true model=x-1 gain=0.5" in out[1]
+
+    assert sdfr(["--api", layer.api, "services", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer == {"services": [published], "version": 1}
+
+    assert sdfr(["--api", layer.api, "--json", "publish", "arm", "manipulator"]) == 0
+    created = json.loads(capsys.readouterr().out)
+    assert set(created) == {"id", "service", "version"}
+
+    assert sdfr(["--api", layer.api, "unpublish", sid]) == 0
+    assert capsys.readouterr().out == ""
+    with Client(layer.api) as client:
+        assert [s["id"] for s in client.services()] == [created["id"]]
+
+
+def test_cli_neighbors_search_history_self(
+    layer: ApiLayer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    save_fleet(layer.state_dir)
+    api = ["--api", layer.api]
+
+    assert sdfr([*api, "neighbors"]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert table[0].split() == ["ROBOT", "ADDRESS", "REACHABLE", "INDICATOR", "RTT", "SERVICES"]
+    assert table[1].split()[:6] == ["atlas", "10.1.0.5", "yes", "0.95", "2.5", "ms"]
+    assert [line.split()[0] for line in table[1:]] == ["atlas", "bee"]
+    # Columns are aligned: every row's ADDRESS starts where the header's does.
+    col = table[0].index("ADDRESS")
+    assert all(line[col - 2 : col] == "  " and line[col] != " " for line in table[1:])
+
+    assert sdfr([*api, "neighbors", "--all"]) == 0
+    rows = capsys.readouterr().out.splitlines()[1:]
+    assert rows[2].split()[:3] == ["gone", "10.1.0.4", "no"]
+
+    assert sdfr([*api, "neighbors", "--json"]) == 0
+    assert [n["robot_id"] for n in json.loads(capsys.readouterr().out)["neighbors"]] == [
+        "atlas",
+        "bee",
+    ]
+
+    assert sdfr([*api, "search", "--type", "camera/rgb", "--attr", "fps=30"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert rows[0].split()[:4] == ["ROBOT", "ADDRESS", "ID", "NAME"]
+    assert [r.split()[0] for r in rows[1:]] == ["atlas"]
+
+    assert sdfr([*api, "--json", "search", "--attr", "frame-rate=30"]) == 0
+    assert [n["robot_id"] for n in json.loads(capsys.readouterr().out)["neighbors"]] == ["atlas"]
+
+    assert sdfr([*api, "history"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert "LAST SEEN" in rows[0] and len(rows) == 4
+
+    assert sdfr([*api, "self"]) == 0
+    out = capsys.readouterr().out
+    assert "r1" in out and "discovery: down" in out
+
+
+def test_cli_health_exit_status(layer: ApiLayer, capsys: pytest.CaptureFixture[str]) -> None:
+    assert sdfr(["--api", layer.api, "health"]) == 1  # discovery down: degraded
+    assert capsys.readouterr().out.startswith("degraded: api up, discovery down")
+    write_healthy_status(layer.state_dir)
+    assert sdfr(["--api", layer.api, "health", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["status"] == "ok"
+
+
+def test_cli_errors_are_one_line(layer: ApiLayer, capsys: pytest.CaptureFixture[str]) -> None:
+    assert sdfr(["--api", layer.api, "unpublish", "nosuchid"]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == "sdfr: id: no local service with id 'nosuchid'\n"
+
+    assert sdfr(["--api", layer.api, "publish", "x", "bad type"]) == 1
+    assert capsys.readouterr().err.startswith("sdfr: type: ")
+
+    assert sdfr(["--api", f"127.0.0.1:{free_port()}", "neighbors"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("sdfr: cannot reach sdfrd at 127.0.0.1:") and err.count("\n") == 1
+
+    # Usage errors: exit status 2, argparse's message.
+    assert sdfr(["--api", layer.api, "search"]) == 2
+    assert "search" in capsys.readouterr().err
+    assert sdfr(["--api", layer.api, "publish", "x", "t", "--attr", "novalue"]) == 2
+    assert "KEY=VALUE" in capsys.readouterr().err
+    assert sdfr(["--api", "nonsense", "neighbors"]) == 2
+    assert sdfr([]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("text", "value"),
+    [
+        ("true", True),
+        ("false", False),
+        ("30", 30),
+        ("-2", -2),
+        ("0.5", 0.5),
+        ("007", "007"),
+        ("0.50", "0.50"),
+        ("1e3", "1e3"),
+        ("nan", "nan"),
+        ("inf", "inf"),
+        ("True", "True"),
+        ("x-1", "x-1"),
+        ("", ""),
+    ],
+)
+def test_cli_attribute_values_are_typed_when_they_read_back(text: str, value: object) -> None:
+    got = typed_value(text)
+    assert got == value and type(got) is type(value)
