@@ -1,0 +1,318 @@
+"""The discovery layer's process: owns the UDP socket and the clock, runs the protocol core.
+
+This is the only place of the discovery layer that reads time or touches a
+socket; everything it decides comes from `sdfr.protocol.Core`. It persists
+the history map to the shared store and reads local registrations from it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import random
+import signal
+import socket
+import struct
+import time
+from pathlib import Path
+
+from sdfr import netif
+from sdfr.config import Config, from_args, split_hostport
+from sdfr.errors import SdfrError
+from sdfr.protocol import MESSAGE_TYPES, Core, CoreConfig, PeerView
+from sdfr.store import PeerRecord, Store
+
+log = logging.getLogger("sdfrd.discovery")
+
+STATUS_PERIOD = 1.0
+CONTROL_NAME = "discovery.sock"
+
+
+def open_multicast_socket(cfg: Config, iface: str) -> socket.socket:
+    """A UDP socket on the SDfR port, in the group on `iface` only."""
+    ifindex = netif.index(iface)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BINDTODEVICE, iface.encode())
+        sock.bind(("0.0.0.0", cfg.port))
+        mreqn = struct.pack("4s4si", socket.inet_aton(cfg.group), b"\0" * 4, ifindex)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreqn)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, mreqn)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, cfg.ttl)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 0)
+        sock.setblocking(False)
+    except OSError as exc:
+        sock.close()
+        raise SdfrError(
+            f"iface: cannot join {cfg.group}:{cfg.port} on {iface}: {exc.strerror or exc}"
+        ) from None
+    return sock
+
+
+class DiscoveryLayer:
+    """Runs one Core against real sockets until stopped."""
+
+    def __init__(self, cfg: Config, store: Store) -> None:
+        if cfg.iface is None or cfg.robot_id is None:
+            raise SdfrError("the discovery layer needs --iface and --robot-id")
+        self.cfg = cfg
+        self.iface: str = cfg.iface
+        self.store = store
+        self.loop = asyncio.get_running_loop()
+        self.clock_offset = time.time() - time.monotonic()
+        self.started = time.time()
+        self.boot_id = store.next_boot_id()
+        version, services = store.local_state()
+        self.address = netif.ipv4(self.iface) or ""
+        self.core = Core(
+            CoreConfig(
+                fleet=cfg.fleet,
+                robot_id=cfg.robot_id,
+                beacon_interval=cfg.beacon_interval,
+                miss_limit=cfg.miss_limit,
+                ping_interval=cfg.effective_ping_interval,
+                reply_delay_max=cfg.reply_delay_max,
+                group=cfg.group,
+                port=cfg.port,
+            ),
+            boot_id=self.boot_id,
+            rng=random.Random(),
+            location=self._location(),
+            version=version,
+            services=services,
+        )
+        self.core.restore(self._restore_views())
+        store.mark_all_unreachable()
+        self.sock = open_multicast_socket(cfg, self.iface)
+        self.control = self._open_control(cfg.state_dir / CONTROL_NAME)
+        self._timer: asyncio.TimerHandle | None = None
+        self._flush_pending = False
+        self._stopping = asyncio.Event()
+
+    # -- setup -----------------------------------------------------------------------------
+
+    def _location(self) -> str:
+        host, port = split_hostport("describe", self.cfg.describe)
+        if host in ("0.0.0.0", "::", ""):
+            host = self.address or "0.0.0.0"
+        return f"http://{host}:{port}/description.json"
+
+    def _restore_views(self) -> list[PeerView]:
+        off = self.clock_offset
+        return [
+            PeerView(
+                robot_id=r.robot_id,
+                address=r.address,
+                location=r.location,
+                boot_id=r.boot_id,
+                version=r.version,
+                digest=r.digest,
+                reachable=False,
+                first_seen=r.first_seen - off,
+                last_heard=r.last_seen - off,
+                indicator=r.indicator,
+                rtt=None if r.rtt_ms is None else r.rtt_ms / 1000,
+                pings=r.pings,
+                services=r.services,
+            )
+            for r in self.store.load_peers()
+        ]
+
+    @staticmethod
+    def _open_control(path: Path) -> socket.socket:
+        """The API layer wakes us through this socket when local services change."""
+        path.unlink(missing_ok=True)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        sock.bind(str(path))
+        os.chmod(path, 0o660)
+        sock.setblocking(False)
+        return sock
+
+    # -- running ---------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        self.loop.add_reader(self.sock.fileno(), self._on_readable)
+        self.loop.add_reader(self.control.fileno(), self._on_control)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            self.loop.add_signal_handler(sig, self._stopping.set)
+        self.core.start(time.monotonic())
+        self._pump()
+        self._write_status()
+        log.info(
+            "discovery up: robot %s fleet %d on %s (%s), boot %d",
+            self.cfg.robot_id,
+            self.cfg.fleet,
+            self.iface,
+            self.address or "no address",
+            self.boot_id,
+        )
+        status_task = asyncio.create_task(self._periodic())
+        try:
+            await self._stopping.wait()
+        finally:
+            status_task.cancel()
+            self.core.stop(time.monotonic())
+            self._pump()
+            self._flush()
+            self.loop.remove_reader(self.sock.fileno())
+            self.loop.remove_reader(self.control.fileno())
+            self.sock.close()
+            self.control.close()
+            (self.cfg.state_dir / CONTROL_NAME).unlink(missing_ok=True)
+            log.info("discovery stopped (byebye sent)")
+
+    async def _periodic(self) -> None:
+        while True:
+            await asyncio.sleep(STATUS_PERIOD)
+            try:
+                self._check_address()
+                self._reload_services()
+                self._write_status()
+            except Exception:  # keep the layer alive; the next period retries
+                log.exception("periodic duties failed")
+
+    def _on_readable(self) -> None:
+        now = time.monotonic()
+        for _ in range(256):
+            try:
+                data, addr = self.sock.recvfrom(2048)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError as exc:
+                log.debug("recvfrom: %s", exc)
+                break
+            self.core.receive(data, (addr[0], addr[1]), now)
+        self._pump()
+
+    def _on_control(self) -> None:
+        while True:
+            try:
+                self.control.recv(64)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                break
+        self._reload_services()
+        self._pump()
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        self.core.handle_timer(time.monotonic())
+        self._pump()
+
+    def _pump(self) -> None:
+        """Send what the core wants sent, persist what changed, re-arm the one timer."""
+        group = (self.cfg.group, self.cfg.port)
+        for data, dst in self.core.datagrams_to_send():
+            try:
+                self.sock.sendto(data, dst if dst is not None else group)
+            except OSError as exc:
+                self.core.counters.rejects["send-error"] += 1
+                log.debug("sendto %s: %s", dst or group, exc)
+        if self.core.has_dirty and not self._flush_pending:
+            self._flush_pending = True
+            self.loop.call_soon(self._flush)
+        deadline = self.core.next_deadline()
+        if self._timer is not None and (deadline is None or self._timer.when() != deadline):
+            self._timer.cancel()
+            self._timer = None
+        if deadline is not None and self._timer is None:
+            # loop.time() is time.monotonic() on Linux's default loop.
+            self._timer = self.loop.call_at(deadline, self._on_timer)
+
+    def _flush(self) -> None:
+        self._flush_pending = False
+        views = self.core.take_dirty()
+        if not views:
+            return
+        off = self.clock_offset
+        self.store.save_peers(
+            PeerRecord(
+                robot_id=v.robot_id,
+                address=v.address,
+                location=v.location,
+                boot_id=v.boot_id,
+                version=v.version,
+                digest=v.digest,
+                reachable=v.reachable,
+                first_seen=v.first_seen + off,
+                last_seen=v.last_heard + off,
+                indicator=v.indicator,
+                rtt_ms=None if v.rtt is None else round(v.rtt * 1000, 3),
+                pings=v.pings,
+                services=v.services,
+            )
+            for v in views
+        )
+
+    def _reload_services(self) -> None:
+        version = self.store.local_version()
+        if version != self.core.version:
+            version, services = self.store.local_state()
+            self.core.set_services(version, services, time.monotonic())
+            self._pump()
+
+    def _check_address(self) -> None:
+        address = netif.ipv4(self.iface) or ""
+        if address != self.address:
+            log.info("address of %s is now %s", self.iface, address or "none")
+            self.address = address
+            self.core.set_location(self._location())
+
+    def _write_status(self) -> None:
+        c = self.core.counters
+        reachable = sum(1 for p in self.core.peers.values() if p.reachable)
+        self.store.write_status(
+            {
+                "pid": os.getpid(),
+                "robot_id": self.cfg.robot_id,
+                "fleet": self.cfg.fleet,
+                "iface": self.iface,
+                "address": self.address,
+                "boot_id": self.boot_id,
+                "version": self.core.version,
+                "started": self.started,
+                "location": self.core.location,
+                "peers_reachable": reachable,
+                "peers_known": len(self.core.peers),
+                "counters": {
+                    "datagrams_in": {k: c.datagrams_in[k] for k in MESSAGE_TYPES},
+                    "datagrams_out": {k: c.datagrams_out[k] for k in MESSAGE_TYPES},
+                    "bytes_in": c.bytes_in,
+                    "bytes_out": c.bytes_out,
+                    "rejects": dict(c.rejects),
+                },
+            }
+        )
+
+
+async def _amain(cfg: Config) -> None:
+    store = Store(cfg.state_dir)
+    try:
+        layer = DiscoveryLayer(cfg, store)
+        await layer.run()
+    finally:
+        store.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        cfg = from_args(argv)
+    except SdfrError as exc:
+        print(f"sdfrd[discovery]: {exc}", flush=True)
+        return 2
+    logging.basicConfig(
+        level=cfg.log_level.upper(), format="sdfrd[discovery] %(levelname)s %(message)s"
+    )
+    try:
+        asyncio.run(_amain(cfg))
+    except SdfrError as exc:
+        log.error("%s", exc)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,72 @@
+"""Facts about the local network interfaces, read from the kernel without extra dependencies."""
+
+from __future__ import annotations
+
+import fcntl
+import socket
+import struct
+from pathlib import Path
+
+from sdfr.errors import ConfigError
+
+_SYS = Path("/sys/class/net")
+_SIOCGIFADDR = 0x8915
+
+
+def exists(iface: str) -> bool:
+    return (_SYS / iface).exists()
+
+
+def default_iface() -> str:
+    """The interface of the default route, else the first non-loopback one that is up."""
+    try:
+        for line in Path("/proc/net/route").read_text().splitlines()[1:]:
+            cols = line.split()
+            if len(cols) > 2 and cols[1] == "00000000":
+                return cols[0]
+    except OSError:
+        pass
+    for path in sorted(_SYS.iterdir()) if _SYS.exists() else []:
+        if path.name == "lo":
+            continue
+        try:
+            flags = int((path / "flags").read_text(), 16)
+        except (OSError, ValueError):
+            continue
+        if flags & 0x1:  # IFF_UP
+            return path.name
+    raise ConfigError("iface: no interface given and none is up besides loopback; pass --iface")
+
+
+def mac(iface: str) -> str:
+    try:
+        return (_SYS / iface / "address").read_text().strip().lower()
+    except OSError:
+        raise ConfigError(f"iface: no interface named {iface!r}") from None
+
+
+def ipv4(iface: str) -> str | None:
+    """The interface's primary IPv4 address, or None when it has none."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            res = fcntl.ioctl(s.fileno(), _SIOCGIFADDR, struct.pack("256s", iface.encode()[:15]))
+        except OSError:
+            return None
+    return socket.inet_ntoa(res[20:24])
+
+
+def index(iface: str) -> int:
+    try:
+        return socket.if_nametoindex(iface)
+    except OSError:
+        raise ConfigError(f"iface: no interface named {iface!r}") from None
+
+
+def robot_id_from_mac(iface: str) -> str:
+    """The default robot id: stable for the hardware, readable (`robot-0242ac110002`)."""
+    digits = mac(iface).replace(":", "")
+    if not digits or set(digits) == {"0"}:
+        raise ConfigError(
+            f"robot_id: {iface} has no MAC address to derive an id from; pass --robot-id"
+        )
+    return f"robot-{digits}"

@@ -1,0 +1,230 @@
+"""A fleet of protocol cores joined by an in-memory lossy medium, run in virtual time.
+
+Minutes of protocol time take milliseconds: nothing sleeps; the loop jumps
+from one event (a delivery or a core's deadline) to the next.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import random
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from sdfr.model import Service
+from sdfr.protocol import Addr, Core, CoreConfig
+
+
+@dataclass
+class Node:
+    name: str
+    addr: Addr
+    core: Core
+    up: bool = True
+    armed: float | None = None
+    sent: list[tuple[float, bytes, Addr | None]] = field(default_factory=list)
+
+
+class SimNet:
+    """Robots on one broadcast medium with per-pair reachability and loss."""
+
+    def __init__(
+        self,
+        seed: int = 1,
+        *,
+        loss: float = 0.0,
+        delay: tuple[float, float] = (0.001, 0.004),
+        duplicate: float = 0.0,
+    ) -> None:
+        self.rng = random.Random(seed)
+        self.loss = loss
+        self.delay = delay
+        self.duplicate = duplicate
+        self.now = 0.0
+        self.nodes: dict[str, Node] = {}
+        self.blocked: set[frozenset[str]] = set()
+        self.pair_loss: dict[tuple[str, str], float] = {}
+        self._queue: list[tuple[float, int, Callable[[], None]]] = []
+        self._seq = itertools.count()
+        self.delivered = 0
+        self.dropped = 0
+        #: Optional veto on each (sender, receiver, datagram): False drops it.
+        self.filter: Callable[[str, str, bytes], bool] | None = None
+
+    # -- building ------------------------------------------------------------------------
+
+    def add(
+        self,
+        name: str,
+        *,
+        boot_id: int = 1,
+        services: Sequence[Service] = (),
+        version: int | None = None,
+        start: bool = True,
+        **cfg: object,
+    ) -> Node:
+        index = len(self.nodes) + 1
+        addr = (f"10.1.0.{index}", 1900)
+        config = CoreConfig(fleet=1, robot_id=name, **cfg)  # type: ignore[arg-type]
+        core = Core(
+            config,
+            boot_id=boot_id,
+            rng=random.Random(self.rng.random()),
+            location=f"http://{addr[0]}:8701/description.json",
+            version=version if version is not None else (1 if services else 0),
+            services=services,
+        )
+        node = Node(name, addr, core)
+        self.nodes[name] = node
+        if start:
+            core.start(self.now)
+            self._pump(node)
+        return node
+
+    def restart(self, name: str, *, boot_id: int, graceful: bool = True, **kw: object) -> Node:
+        old = self.nodes[name]
+        if graceful:
+            old.core.stop(self.now)
+            self._pump(old)
+        old.up = False
+        config = old.core.config
+        core = Core(
+            config,
+            boot_id=boot_id,
+            rng=random.Random(self.rng.random()),
+            location=old.core.location,
+            version=kw.get("version", old.core.version),  # type: ignore[arg-type]
+            services=kw.get("services", old.core.services),  # type: ignore[arg-type]
+        )
+        node = Node(name, old.addr, core)
+        self.nodes[name] = node
+        core.start(self.now)
+        self._pump(node)
+        return node
+
+    def kill(self, name: str) -> None:
+        """Silent death: the node stops sending and receiving."""
+        self.nodes[name].up = False
+
+    def stop(self, name: str) -> None:
+        node = self.nodes[name]
+        node.core.stop(self.now)
+        self._pump(node)
+        node.up = False
+
+    def partition(self, *groups: Sequence[str]) -> None:
+        self.blocked.clear()
+        side = {n: i for i, g in enumerate(groups) for n in g}
+        for a, b in itertools.combinations(self.nodes, 2):
+            if side.get(a) != side.get(b):
+                self.blocked.add(frozenset((a, b)))
+
+    def merge(self) -> None:
+        self.blocked.clear()
+
+    def set_services(self, name: str, version: int, services: Sequence[Service]) -> None:
+        node = self.nodes[name]
+        node.core.set_services(version, services, self.now)
+        self._pump(node)
+
+    def inject(self, name: str, data: bytes, src: Addr) -> None:
+        """Deliver raw bytes to one node now (malformed input, foreign traffic)."""
+        node = self.nodes[name]
+        node.core.receive(data, src, self.now)
+        self._pump(node)
+
+    # -- running -------------------------------------------------------------------------
+
+    def run_for(self, seconds: float) -> None:
+        self.run_until(self.now + seconds)
+
+    def run_until(self, t_end: float) -> None:
+        while self._queue and self._queue[0][0] <= t_end:
+            t, _, action = heapq.heappop(self._queue)
+            self.now = max(self.now, t)
+            action()
+        self.now = max(self.now, t_end)
+
+    def wait_until(self, pred: Callable[[], bool], timeout: float, step: float = 0.01) -> float:
+        """Run until `pred()` holds; return the virtual time it took, or raise."""
+        start = self.now
+        while not pred():
+            if self.now - start > timeout:
+                raise AssertionError(f"condition not met within {timeout} s of virtual time")
+            self.run_for(step)
+        return self.now - start
+
+    # -- views ---------------------------------------------------------------------------
+
+    def sees(self, a: str, b: str) -> bool:
+        peer = self.nodes[a].core.peers.get(b)
+        return peer is not None and peer.reachable
+
+    def all_see_all(self, names: Sequence[str] | None = None, with_services: bool = True) -> bool:
+        names = list(names if names is not None else self.nodes)
+        for a in names:
+            for b in names:
+                if a == b:
+                    continue
+                peer = self.nodes[a].core.peers.get(b)
+                if peer is None or not peer.reachable:
+                    return False
+                if with_services and peer.services != self.nodes[b].core.services:
+                    return False
+        return True
+
+    # -- internals -----------------------------------------------------------------------
+
+    def _at(self, t: float, action: Callable[[], None]) -> None:
+        heapq.heappush(self._queue, (t, next(self._seq), action))
+
+    def _pump(self, node: Node) -> None:
+        """Ship what the node wants to send and re-arm its timer."""
+        core = node.core
+        for data, dst in core.datagrams_to_send():
+            node.sent.append((self.now, data, dst))
+            if not node.up and dst is not None:
+                continue
+            for target in self._targets(node, dst):
+                self._transmit(node, target, data)
+        deadline = core.next_deadline()
+        if deadline is not None and node.up and (node.armed is None or deadline != node.armed):
+            node.armed = deadline
+
+            def fire(node: Node = node, when: float = deadline) -> None:
+                if node.armed != when or not node.up or self.nodes.get(node.name) is not node:
+                    return
+                node.armed = None
+                node.core.handle_timer(self.now)
+                self._pump(node)
+
+            self._at(max(deadline, self.now), fire)
+
+    def _targets(self, node: Node, dst: Addr | None) -> list[Node]:
+        if dst is None:
+            return [n for n in self.nodes.values() if n is not node]
+        return [n for n in self.nodes.values() if n.addr == dst and n is not node]
+
+    def _transmit(self, src: Node, dst: Node, data: bytes) -> None:
+        if frozenset((src.name, dst.name)) in self.blocked:
+            return
+        if self.filter is not None and not self.filter(src.name, dst.name, data):
+            self.dropped += 1
+            return
+        loss = self.pair_loss.get((src.name, dst.name), self.loss)
+        copies = 2 if self.rng.random() < self.duplicate else 1
+        for _ in range(copies):
+            if self.rng.random() < loss:
+                self.dropped += 1
+                continue
+            t = self.now + self.rng.uniform(*self.delay)
+
+            def deliver(dst: Node = dst, data: bytes = data, addr: Addr = src.addr) -> None:
+                if not dst.up or self.nodes.get(dst.name) is not dst:
+                    return
+                self.delivered += 1
+                dst.core.receive(data, addr, self.now)
+                self._pump(dst)
+
+            self._at(t, deliver)

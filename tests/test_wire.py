@@ -1,0 +1,814 @@
+"""The wire codec: round trips, standard SSDP interop, rejects, and a decoder that never raises."""
+
+from __future__ import annotations
+
+import io
+import itertools
+import json
+import time
+from http.client import parse_headers
+
+import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
+
+from sdfr import __version__
+from sdfr.errors import ValidationError
+from sdfr.model import Service, service_digest
+from sdfr.wire import (
+    DEFAULT_GROUP,
+    DEVICE_TYPE,
+    MAX_DATAGRAM,
+    MAX_HOST,
+    MAX_LOCATION,
+    REJECT_REASONS,
+    SERVER,
+    WANT_ALL,
+    Alive,
+    Byebye,
+    Discovery,
+    Message,
+    Origin,
+    Reject,
+    Response,
+    Update,
+    Want,
+    check_service_fits,
+    decode,
+    encode,
+    encode_update_parts,
+    fleet_target,
+    max_service_json_bytes,
+)
+
+# --------------------------------------------------------------------------------------------
+# Strategies
+
+robot_ids = st.from_regex(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", fullmatch=True)
+origins = st.builds(
+    Origin,
+    fleet=st.integers(0, 255),
+    robot_id=robot_ids,
+    boot_id=st.integers(0, 2**31 - 1),
+    version=st.integers(0, 2**53),
+    digest=st.text("0123456789abcdef", min_size=16, max_size=16),
+)
+# Header values: printable, no surrounding whitespace; ASCII and some unicode.
+header_texts = st.one_of(
+    st.from_regex(r"[!-~]([ -~]{0,60}[!-~])?", fullmatch=True),
+    st.text(st.characters(categories=("L", "N", "P", "S")), min_size=1, max_size=30),
+)
+locations = st.from_regex(r"http://[a-z0-9.-]{1,40}:[0-9]{1,5}/[!-~]{0,100}", fullmatch=True)
+max_ages = st.integers(1, 86400)
+seqs = st.none() | st.integers(0, 2**53)
+wants = st.one_of(
+    st.none(),
+    st.just(WANT_ALL),
+    st.lists(st.integers(0, 255), min_size=1, max_size=60, unique=True).map(
+        lambda xs: tuple(sorted(xs))
+    ),
+)
+attr_values = st.one_of(
+    st.text(max_size=20),
+    st.integers(-(2**53), 2**53),
+    st.floats(allow_nan=False, allow_infinity=False),
+    st.booleans(),
+)
+services = st.builds(
+    Service,
+    id=st.from_regex(r"[A-Za-z0-9._-]{1,24}", fullmatch=True),
+    name=st.text(min_size=1, max_size=30).filter(lambda s: bool(s.strip())),
+    type=st.from_regex(r"[A-Za-z0-9][A-Za-z0-9._:/-]{0,30}", fullmatch=True),
+    url=st.none() | st.text(max_size=40),
+    attributes=st.dictionaries(st.text(min_size=1, max_size=12), attr_values, max_size=4),
+)
+service_lists = st.lists(
+    services.filter(lambda s: len(json.dumps(s.to_json(), ensure_ascii=False)) < 600),
+    max_size=40,
+    unique_by=lambda s: s.id,
+)
+
+ORIGIN = Origin(fleet=3, robot_id="robot-7", boot_id=1700000000, version=42, digest="0" * 16)
+LOCATION = "http://10.0.0.7:8080/sdfr"
+
+
+def realistic_services(n: int) -> list[Service]:
+    """Services of roughly 150 bytes of JSON each, as a ROS robot might announce."""
+    return [
+        Service(
+            id=f"svc-{i:03d}",
+            name=f"Camera {i} (front)",
+            type="ros2/topic",
+            url=f"ros2://robot-7/camera_{i}/image_raw",
+            attributes={"encoding": "rgb8", "rate": 30, "frame": f"cam_{i}_link"},
+        )
+        for i in range(n)
+    ]
+
+
+def corpus() -> list[bytes]:
+    """One valid datagram of each kind, to mutate."""
+    svcs = realistic_services(3)
+    return [
+        encode(Discovery(None, "ssdp:all", 3)),
+        encode(Discovery(ORIGIN, fleet_target(3), 2, seq=9, want=(0, 2), want_version=42)),
+        encode(Response(ORIGIN, fleet_target(3), LOCATION, 1800, seq=9)),
+        encode(Alive(ORIGIN, LOCATION, 1800)),
+        encode(Byebye(ORIGIN)),
+        encode(Update(ORIGIN, LOCATION, 1800, 0, 1, tuple(svcs))),
+    ]
+
+
+def headers_of(data: bytes) -> dict[str, str]:
+    head = data.split(b"\r\n\r\n", 1)[0].decode()
+    lines = head.split("\r\n")[1:]
+    return {k.upper(): v.strip() for k, _, v in (line.partition(":") for line in lines)}
+
+
+def edit(data: bytes, drop: tuple[str, ...] = (), **values: str) -> bytes:
+    """`data` with headers dropped or replaced/added (underscores in names become dashes;
+    use `BOOTID_UPNP_ORG`-style names via the dict form)."""
+    head, sep, body = data.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    changes = {k.replace("__", ".").replace("_", "-").upper(): v for k, v in values.items()}
+    out = [lines[0]]
+    for line in lines[1:]:
+        name = line.partition(":")[0].strip().upper()
+        if name in drop:
+            continue
+        if name in changes:
+            out.append(f"{name}: {changes.pop(name)}")
+        else:
+            out.append(line)
+    out += [f"{k}: {v}" for k, v in changes.items()]
+    return "\r\n".join(out).encode() + sep + body
+
+
+def check_reject(result: Message | Reject, reason: str, detail: str = "") -> None:
+    assert isinstance(result, Reject), result
+    assert result.reason == reason, result
+    assert detail in result.detail, result
+
+
+def check_decoded(result: Message | Reject) -> None:
+    """What every decode result must look like, whatever went in."""
+    if isinstance(result, Reject):
+        assert result.reason in REJECT_REASONS
+        assert not result.detail.startswith("internal error"), result.detail
+    else:
+        assert isinstance(result, Discovery | Response | Update | Alive | Byebye)
+
+
+# --------------------------------------------------------------------------------------------
+# Round trips
+
+
+@given(
+    origin=st.none() | origins,
+    st_=header_texts,
+    mx=st.integers(0, 5),
+    seq=seqs,
+    want=wants,
+    want_version=st.none() | st.integers(0, 2**53),
+    multicast=st.booleans(),
+)
+def test_discovery_round_trip(
+    origin: Origin | None,
+    st_: str,
+    mx: int,
+    seq: int | None,
+    want: Want,
+    want_version: int | None,
+    multicast: bool,
+) -> None:
+    if origin is None:
+        seq = want = want_version = None
+    msg = Discovery(origin, st_, mx, seq, want, want_version, multicast)
+    group = DEFAULT_GROUP if multicast else "192.0.2.7"
+    data = encode(msg, group=group, port=1900)
+    assert len(data) <= MAX_DATAGRAM
+    assert decode(data) == msg
+    if origin is not None:
+        assert decode(data, fleet=origin.fleet) == msg
+
+
+@given(origin=origins, st_=header_texts, location=locations, max_age=max_ages, seq=seqs)
+def test_response_round_trip(
+    origin: Origin, st_: str, location: str, max_age: int, seq: int | None
+) -> None:
+    msg = Response(origin, st_, location, max_age, seq)
+    assert decode(encode(msg)) == msg
+
+
+@given(origin=origins, location=locations, max_age=max_ages)
+def test_alive_and_byebye_round_trip(origin: Origin, location: str, max_age: int) -> None:
+    alive = Alive(origin, location, max_age)
+    assert decode(encode(alive)) == alive
+    bye = Byebye(origin)
+    assert decode(encode(bye)) == bye
+
+
+@given(
+    origin=origins,
+    location=locations,
+    max_age=max_ages,
+    svcs=st.lists(services, max_size=3, unique_by=lambda s: s.id),
+    shape=st.integers(1, 255).flatmap(lambda n: st.tuples(st.integers(0, n - 1), st.just(n))),
+)
+def test_update_round_trip(
+    origin: Origin,
+    location: str,
+    max_age: int,
+    svcs: list[Service],
+    shape: tuple[int, int],
+) -> None:
+    part, parts = shape
+    msg = Update(origin, location, max_age, part, parts, tuple(svcs))
+    try:
+        data = encode(msg)
+    except ValueError:
+        assume(False)
+    assert len(data) <= MAX_DATAGRAM
+    assert decode(data) == msg
+
+
+def test_update_with_unicode_round_trips() -> None:
+    svc = Service(
+        id="cam.0",
+        name="Kamera vorne \u2013 \u00fcberall \U0001f916",
+        type="ros2/topic",
+        url="http://\u00e9xample/\u6444\u50cf",
+        attributes={"\u6807\u7b7e": "\u503c", "emoji": "\U0001f680", "n": -3, "x": 0.5},
+    )
+    msg = Update(ORIGIN, LOCATION, 60, 0, 1, (svc,))
+    data = encode(msg)
+    assert "\U0001f916".encode() in data  # ensure_ascii=False: raw UTF-8 in the body
+    assert decode(data) == msg
+
+
+def test_plain_discovery_has_only_standard_headers() -> None:
+    data = encode(Discovery(None, "ssdp:all", 3))
+    assert data == (
+        b"M-SEARCH * HTTP/1.1\r\nHOST: 239.255.255.250:1900\r\n"
+        b'MAN: "ssdp:discover"\r\nMX: 3\r\nST: ssdp:all\r\n\r\n'
+    )
+
+
+def test_every_sdfr_message_carries_the_common_headers() -> None:
+    for data in corpus()[1:]:
+        headers = headers_of(data)
+        for name in (
+            "X-SDFR-FLEET",
+            "X-SDFR-ROBOT",
+            "X-SDFR-TYPE",
+            "X-SDFR-VERSION",
+            "X-SDFR-DIGEST",
+            "BOOTID.UPNP.ORG",
+            "CONFIGID.UPNP.ORG",
+        ):
+            assert name in headers, (name, data)
+
+
+def test_configid_is_version_modulo_2_24() -> None:
+    origin = Origin(1, "r1", 0, 2**24 + 5, "a" * 16)
+    data = encode(Alive(origin, LOCATION, 30))
+    assert headers_of(data)["CONFIGID.UPNP.ORG"] == "5"
+    assert headers_of(data)["X-SDFR-VERSION"] == str(2**24 + 5)
+    assert decode(data) == Alive(origin, LOCATION, 30)
+
+
+def test_notify_headers() -> None:
+    svcs = realistic_services(2)
+    data = encode(Update(ORIGIN, LOCATION, 1800, 0, 1, tuple(svcs)))
+    headers = headers_of(data)
+    assert data.startswith(b"NOTIFY * HTTP/1.1\r\n")
+    assert headers["HOST"] == "239.255.255.250:1900"
+    assert headers["NT"] == "urn:sdfr-org:fleet:3"
+    assert headers["NTS"] == "ssdp:update"
+    assert headers["USN"] == "uuid:robot-7::urn:sdfr-org:device:robot:1"
+    assert headers["CACHE-CONTROL"] == "max-age=1800"
+    assert headers["X-SDFR-PART"] == "1/1"
+    assert headers["CONTENT-TYPE"] == "application/json"
+    body = data.partition(b"\r\n\r\n")[2]
+    assert int(headers["CONTENT-LENGTH"]) == len(body)
+    assert json.loads(body) == {"services": [s.to_json() for s in svcs]}
+    assert b" " not in body.replace(b"Camera ", b"").replace(b" (front)", b"")  # compact
+    bye = headers_of(encode(Byebye(ORIGIN)))
+    assert bye["NTS"] == "ssdp:byebye" and "LOCATION" not in bye
+    assert headers_of(encode(Alive(ORIGIN, LOCATION, 5)))["NTS"] == "ssdp:alive"
+
+
+def test_unicast_discovery() -> None:
+    msg = Discovery(ORIGIN, fleet_target(3), 0, seq=1, multicast=False)
+    data = encode(msg, group="10.0.0.9", port=1900)
+    headers = headers_of(data)
+    assert headers["HOST"] == "10.0.0.9:1900"
+    assert "MX" not in headers  # unicast searches need no MX
+    assert decode(data) == msg
+    v6 = encode(Discovery(None, "ssdp:all", 2, multicast=False), group="fe80::1", port=1900)
+    assert headers_of(v6)["HOST"] == "[fe80::1]:1900"
+    assert decode(v6) == Discovery(None, "ssdp:all", 2, multicast=False)
+    assert decode(encode(Discovery(None, "ssdp:all", 2), group="ff02::c")) == Discovery(
+        None, "ssdp:all", 2
+    )
+
+
+def test_decode_multicast_flag_with_group() -> None:
+    data = encode(Discovery(None, "ssdp:all", 2), group="239.1.2.3")
+    assert decode(data).multicast is True  # type: ignore[union-attr]
+    assert decode(data, group="239.1.2.3").multicast is True  # type: ignore[union-attr]
+    assert decode(data, group=DEFAULT_GROUP).multicast is False  # type: ignore[union-attr]
+    no_man = decode(edit(data, drop=("MAN",)))
+    assert isinstance(no_man, Discovery) and no_man.multicast is False
+
+
+# --------------------------------------------------------------------------------------------
+# Encoding errors
+
+
+@pytest.mark.parametrize(
+    "msg",
+    [
+        Alive(Origin(256, "r", 0, 0, "0" * 16), LOCATION, 5),
+        Alive(Origin(1, "-r", 0, 0, "0" * 16), LOCATION, 5),
+        Alive(Origin(1, "r\n", 0, 0, "0" * 16), LOCATION, 5),
+        Alive(Origin(1, "r", 2**31, 0, "0" * 16), LOCATION, 5),
+        Alive(Origin(1, "r", 0, 2**53 + 1, "0" * 16), LOCATION, 5),
+        Alive(Origin(1, "r", 0, 0, "0" * 15), LOCATION, 5),
+        Alive(Origin(1, "r", 0, 0, "A" * 16), LOCATION, 5),
+        Alive(ORIGIN, LOCATION, 0),
+        Alive(ORIGIN, "http://x/\r\nX-EVIL: 1", 5),
+        Alive(ORIGIN, " http://x/", 5),
+        Alive(ORIGIN, "", 5),
+        Alive(ORIGIN, "http://x/" + "a" * MAX_LOCATION, 5),
+        Response(ORIGIN, "ssdp:all\r\nX: y", LOCATION, 5),
+        Response(ORIGIN, "ssdp:all", LOCATION, 5, seq=-1),
+        Discovery(ORIGIN, "ssdp:all", 6),
+        Discovery(ORIGIN, "ssdp:all", 2, want=(3, 1)),
+        Discovery(ORIGIN, "ssdp:all", 2, want=(1, 1)),
+        Discovery(ORIGIN, "ssdp:all", 2, want=(256,)),
+        Discovery(ORIGIN, "ssdp:all", 2, want=()),
+        Discovery(None, "ssdp:all", 2, seq=1),
+        Discovery(ORIGIN, "x" * MAX_DATAGRAM, 2),
+        Discovery(ORIGIN, "ssdp:all", 2, multicast=False),  # HOST would be the group
+        Update(ORIGIN, LOCATION, 5, 1, 1, ()),
+        Update(ORIGIN, LOCATION, 5, 0, 256, ()),
+        Update(ORIGIN, LOCATION, 5, 0, 1, (Service("a", "A", "t"), Service("a", "B", "t"))),
+        Update(ORIGIN, LOCATION, 5, 0, 1, (Service("a", "A", "t", None, {"x": float("inf")}),)),
+        Update(ORIGIN, LOCATION, 5, 0, 1, (Service("a", "\ud800", "t"),)),
+    ],
+)
+def test_encode_rejects_bad_messages(msg: Message) -> None:
+    with pytest.raises(ValueError):
+        encode(msg)
+
+
+def test_multicast_discovery_needs_a_multicast_group() -> None:
+    with pytest.raises(ValueError, match="multicast"):
+        encode(Discovery(None, "ssdp:all", 2), group="10.0.0.1")
+
+
+# --------------------------------------------------------------------------------------------
+# Update parts
+
+
+@given(origin=origins, location=locations, max_age=max_ages, svcs=service_lists)
+def test_update_parts_reassemble(
+    origin: Origin, location: str, max_age: int, svcs: list[Service]
+) -> None:
+    datagrams = encode_update_parts(origin, location, max_age, svcs)
+    decoded = [decode(d) for d in datagrams]
+    assert all(len(d) <= MAX_DATAGRAM for d in datagrams)
+    assert all(isinstance(u, Update) for u in decoded)
+    updates = [u for u in decoded if isinstance(u, Update)]
+    assert [u.part for u in updates] == list(range(len(datagrams)))
+    assert {u.parts for u in updates} == {len(datagrams)}
+    assert all((u.origin, u.location, u.max_age) == (origin, location, max_age) for u in updates)
+    assert [s for u in updates for s in u.services] == svcs
+    # Greedy: the first service of each part would not have fitted in the part before.
+    for before, after in itertools.pairwise(updates):
+        grown = Update(
+            origin,
+            location,
+            max_age,
+            before.part,
+            before.parts,
+            (*before.services, after.services[0]),
+        )
+        with pytest.raises(ValueError):
+            encode(grown)
+
+
+def test_update_parts_of_100_services() -> None:
+    svcs = realistic_services(100)
+    sizes = [len(json.dumps(s.to_json(), separators=(",", ":"))) for s in svcs]
+    assert min(sizes) >= 130 and max(sizes) <= 180
+    datagrams = encode_update_parts(ORIGIN, LOCATION, 1800, svcs)
+    assert 8 <= len(datagrams) <= 20
+    assert all(len(d) <= MAX_DATAGRAM for d in datagrams)
+    updates = [decode(d) for d in datagrams]
+    assert [s for u in updates for s in u.services] == svcs  # type: ignore[union-attr]
+    assert {u.parts for u in updates} == {len(datagrams)}  # type: ignore[union-attr]
+    # Most parts are nearly full.
+    assert sum(len(d) for d in datagrams) > 0.85 * MAX_DATAGRAM * len(datagrams)
+
+
+def test_update_parts_are_fast() -> None:
+    svcs = realistic_services(100)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        encode_update_parts(ORIGIN, LOCATION, 1800, svcs)
+        best = min(best, time.perf_counter() - t0)
+    assert best < 0.02  # about 0.3 ms on a laptop; this only catches quadratic blowups
+
+
+def test_update_parts_with_more_than_nine_parts_number_correctly() -> None:
+    svcs = realistic_services(200)
+    datagrams = encode_update_parts(ORIGIN, LOCATION, 1800, svcs)
+    assert len(datagrams) >= 10
+    assert headers_of(datagrams[0])["X-SDFR-PART"] == f"1/{len(datagrams)}"
+    assert headers_of(datagrams[-1])["X-SDFR-PART"] == f"{len(datagrams)}/{len(datagrams)}"
+
+
+def test_empty_service_set_is_one_empty_part() -> None:
+    (data,) = encode_update_parts(ORIGIN, LOCATION, 1800, [])
+    assert decode(data) == Update(ORIGIN, LOCATION, 1800, 0, 1, ())
+    assert data.endswith(b'\r\n\r\n{"services":[]}')
+
+
+def test_oversized_service_raises() -> None:
+    big = Service("huge", "x" * 128, "t", "u" * 256, {f"k{i}": "v" * 200 for i in range(8)})
+    with pytest.raises(ValueError, match="huge"):
+        encode_update_parts(ORIGIN, LOCATION, 1800, [*realistic_services(3), big])
+    with pytest.raises(ValidationError) as info:
+        check_service_fits(big)
+    assert info.value.field == "service"
+    assert str(max_service_json_bytes()) in str(info.value)
+
+
+def test_update_parts_reject_duplicate_ids_and_bad_values() -> None:
+    with pytest.raises(ValueError, match="duplicate"):
+        encode_update_parts(ORIGIN, LOCATION, 1800, [Service("a", "A", "t")] * 2)
+    with pytest.raises(ValueError):
+        encode_update_parts(ORIGIN, LOCATION, 1800, [Service("a", "A", "t", None, {"x": 1e999})])
+    with pytest.raises(ValidationError):
+        check_service_fits(Service("a", "A", "t", None, {"x": float("nan")}))
+
+
+def test_check_service_fits_accepts_normal_services() -> None:
+    for svc in realistic_services(3):
+        check_service_fits(svc)
+
+
+def service_of_json_size(size: int) -> Service:
+    svc = Service("s", "", "t")
+    base = len(json.dumps(svc.to_json(), separators=(",", ":")))
+    return Service("s", "n" * (size - base), "t")
+
+
+def test_max_service_json_bytes_is_tight() -> None:
+    """A service of exactly the limit fits with the longest possible headers, one more does not."""
+    limit = max_service_json_bytes()
+    assert 500 < limit < MAX_DATAGRAM
+    worst = Origin(255, "r" * 64, 2**31 - 1, 2**53 - 1, "f" * 16)
+    location = "l" * MAX_LOCATION
+    group = "ffff:ffff:ffff:ffff:ffff:ffff:ffff:ffff"
+    assert len(f"[{group}]:65535") == MAX_HOST
+    fits = service_of_json_size(limit)
+    check_service_fits(fits)
+    data = encode(Update(worst, location, 86400, 254, 255, (fits,)), group=group, port=65535)
+    assert len(data) == MAX_DATAGRAM
+    too_big = service_of_json_size(limit + 1)
+    with pytest.raises(ValidationError):
+        check_service_fits(too_big)
+    with pytest.raises(ValueError):
+        encode(Update(worst, location, 86400, 254, 255, (too_big,)), group=group, port=65535)
+    # With ordinary headers the limit service of course still goes out.
+    assert len(encode_update_parts(ORIGIN, LOCATION, 60, [fits])) == 1
+
+
+# --------------------------------------------------------------------------------------------
+# Standard SSDP interop
+
+ASYNC_UPNP_CLIENT_SEARCH = (
+    b"M-SEARCH * HTTP/1.1\r\n"
+    b"HOST: 239.255.255.250:1900\r\n"
+    b'MAN: "ssdp:discover"\r\n'
+    b"MX: 4\r\n"
+    b"ST: ssdp:all\r\n"
+    b"\r\n"
+)
+GSSDP_SEARCH = (
+    b"M-SEARCH * HTTP/1.1\r\n"
+    b"Host: 239.255.255.250:1900\r\n"
+    b'Man: "ssdp:discover"\r\n'
+    b"ST: urn:schemas-upnp-org:device:MediaServer:1\r\n"
+    b"MX: 3\r\n"
+    b"User-Agent: Linux/6.1 UPnP/1.0 GUPnP/1.6.6 DLNADOC/1.50\r\n"
+    b"\r\n"
+)
+ROUTER_NOTIFY = (
+    b"NOTIFY * HTTP/1.1\r\n"
+    b"HOST: 239.255.255.250:1900\r\n"
+    b"CACHE-CONTROL: max-age=120\r\n"
+    b"LOCATION: http://192.168.1.1:5000/rootDesc.xml\r\n"
+    b"SERVER: OpenWRT/23.05 UPnP/1.1 MiniUPnPd/2.3.3\r\n"
+    b"NT: upnp:rootdevice\r\n"
+    b"USN: uuid:4f3e1a52-6b5c-4a1e-9a0e-1c2d3e4f5a6b::upnp:rootdevice\r\n"
+    b"NTS: ssdp:alive\r\n"
+    b'OPT: "http://schemas.upnp.org/upnp/1/0/"; ns=01\r\n'
+    b"01-NLS: 1700000000\r\n"
+    b"BOOTID.UPNP.ORG: 1700000000\r\n"
+    b"CONFIGID.UPNP.ORG: 1337\r\n"
+    b"\r\n"
+)
+ROUTER_RESPONSE = (
+    b"HTTP/1.1 200 OK\r\n"
+    b"CACHE-CONTROL: max-age=120\r\n"
+    b"ST: upnp:rootdevice\r\n"
+    b"USN: uuid:4f3e1a52-6b5c-4a1e-9a0e-1c2d3e4f5a6b::upnp:rootdevice\r\n"
+    b"EXT:\r\n"
+    b"SERVER: OpenWRT/23.05 UPnP/1.1 MiniUPnPd/2.3.3\r\n"
+    b"LOCATION: http://192.168.1.1:5000/rootDesc.xml\r\n"
+    b"\r\n"
+)
+
+
+def test_standard_client_search_decodes_as_plain_discovery() -> None:
+    assert decode(ASYNC_UPNP_CLIENT_SEARCH) == Discovery(origin=None, st="ssdp:all", mx=4)
+    assert decode(ASYNC_UPNP_CLIENT_SEARCH, fleet=3) == Discovery(None, "ssdp:all", 4)
+    assert decode(GSSDP_SEARCH) == Discovery(None, "urn:schemas-upnp-org:device:MediaServer:1", 3)
+    compact = ASYNC_UPNP_CLIENT_SEARCH.replace(b": ", b":")  # no space after the colon
+    assert decode(compact) == Discovery(None, "ssdp:all", 4)
+    unquoted = ASYNC_UPNP_CLIENT_SEARCH.replace(b'"ssdp:discover"', b"ssdp:discover")
+    assert decode(unquoted) == Discovery(None, "ssdp:all", 4)
+
+
+def test_plain_upnp_devices_are_not_sdfr() -> None:
+    check_reject(decode(ROUTER_NOTIFY), "not-sdfr")
+    check_reject(decode(ROUTER_NOTIFY, fleet=3), "not-sdfr")
+    check_reject(decode(ROUTER_RESPONSE), "not-sdfr")
+
+
+def test_response_is_a_standard_ssdp_search_response() -> None:
+    data = encode(Response(ORIGIN, "ssdp:all", LOCATION, 1800, seq=5))
+    status, _, rest = data.partition(b"\r\n")
+    assert status == b"HTTP/1.1 200 OK"
+    msg = parse_headers(io.BytesIO(rest))
+    for name in ("CACHE-CONTROL", "EXT", "LOCATION", "SERVER", "ST", "USN"):
+        assert msg[name] is not None, name
+    assert msg["EXT"] == ""
+    assert msg["CACHE-CONTROL"] == "max-age=1800"
+    assert msg["LOCATION"] == LOCATION
+    assert msg["ST"] == "ssdp:all"
+    assert msg["USN"] == f"uuid:robot-7::{DEVICE_TYPE}"
+    assert msg["SERVER"] == SERVER == f"Linux UPnP/1.1 SDfR/{__version__}"
+    assert msg["BOOTID.UPNP.ORG"] == str(ORIGIN.boot_id)
+    assert data.endswith(b"\r\n\r\n") and data.count(b"\r\n\r\n") == 1
+
+
+def test_other_fleet_is_filtered() -> None:
+    for data in corpus()[1:]:
+        check_reject(decode(data, fleet=4), "other-fleet", "3")
+        assert not isinstance(decode(data, fleet=3), Reject)
+        lower = data.replace(b"X-SDFR-FLEET:", b"x-sdfr-fleet:")
+        check_reject(decode(lower, fleet=4), "other-fleet")
+        # The fleet filter goes first: even an otherwise broken datagram is just other-fleet.
+        broken = data.replace(b"X-SDFR-DIGEST", b"X-SDFR-DIGESTX")
+        check_reject(decode(broken, fleet=4), "other-fleet")
+
+
+def test_headers_are_case_insensitive() -> None:
+    for data in corpus():
+        head, sep, body = data.partition(b"\r\n\r\n")
+        lines = head.split(b"\r\n")
+        lower = [lines[0]] + [
+            n.lower() + b":" + v for n, _, v in (line.partition(b":") for line in lines[1:])
+        ]
+        assert decode(b"\r\n".join(lower) + sep + body) == decode(data)
+        assert not isinstance(decode(data), Reject)
+
+
+def test_bare_newline_line_endings() -> None:
+    for data in corpus():
+        assert decode(data.replace(b"\r\n", b"\n")) == decode(data)
+    assert decode(ASYNC_UPNP_CLIENT_SEARCH.replace(b"\r\n", b"\n")) == Discovery(
+        None, "ssdp:all", 4
+    )
+
+
+def test_missing_final_blank_line_is_tolerated_for_headers_only() -> None:
+    assert decode(ASYNC_UPNP_CLIENT_SEARCH[:-2]) == Discovery(None, "ssdp:all", 4)
+    assert decode(ASYNC_UPNP_CLIENT_SEARCH[:-4]) == Discovery(None, "ssdp:all", 4)
+
+
+def test_mx_rules() -> None:
+    def mx_of(data: bytes) -> int:
+        result = decode(data)
+        assert isinstance(result, Discovery), result
+        return result.mx
+
+    assert mx_of(edit(ASYNC_UPNP_CLIENT_SEARCH, MX="120")) == 5
+    assert mx_of(edit(ASYNC_UPNP_CLIENT_SEARCH, MX="0")) == 0
+    assert mx_of(edit(ASYNC_UPNP_CLIENT_SEARCH, drop=("MX",))) == 0
+    check_reject(decode(edit(ASYNC_UPNP_CLIENT_SEARCH, MX="121")), "bad-value", "MX")
+    check_reject(decode(edit(ASYNC_UPNP_CLIENT_SEARCH, MX="-1")), "bad-value", "MX")
+    check_reject(decode(edit(ASYNC_UPNP_CLIENT_SEARCH, MX="three")), "bad-value", "MX")
+
+
+def test_want_is_normalised() -> None:
+    data = edit(corpus()[1], X_SDFR_WANT="4, 0,3,3")
+    result = decode(data)
+    assert isinstance(result, Discovery) and result.want == (0, 3, 4)
+    every = Discovery(ORIGIN, "ssdp:all", 1, want=tuple(range(256)))
+    assert decode(encode(every)) == every
+
+
+# --------------------------------------------------------------------------------------------
+# Rejects
+
+ALIVE = encode(Alive(ORIGIN, LOCATION, 1800))
+UPDATE = encode(Update(ORIGIN, LOCATION, 1800, 0, 2, tuple(realistic_services(2))))
+SEARCH = encode(Discovery(ORIGIN, "ssdp:all", 2, seq=1))
+RESPONSE = encode(Response(ORIGIN, "ssdp:all", LOCATION, 1800, seq=1))
+
+
+def with_body(body: bytes) -> bytes:
+    head = UPDATE.partition(b"\r\n\r\n")[0]
+    return edit(head + b"\r\n\r\n", CONTENT_LENGTH=str(len(body))) + body
+
+
+@pytest.mark.parametrize(
+    ("data", "reason", "detail"),
+    [
+        (ALIVE + b" " * (MAX_DATAGRAM + 1 - len(ALIVE)), "too-large", "1401"),
+        (b"", "bad-start-line", ""),
+        (b"\x00\xff\xfe garbage", "bad-start-line", ""),
+        (b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", "bad-start-line", "GET"),
+        (b"GET / HTTP/1.1\r\nnot a header\r\n\r\n", "bad-start-line", "GET"),
+        (b"HTTP/1.1 404 Not Found\r\nnot a header\r\n\r\n", "unsupported", "404"),
+        (b"M-SEARCH * HTTP/1.0\r\nST: x\r\n\r\n", "bad-start-line", ""),
+        (b"HTTP/1.1 2000 OK\r\n\r\n", "bad-start-line", ""),
+        (b"HTTP/1.1 20\r\n\r\n", "bad-start-line", ""),
+        (b"HTTP/1.1 \r\n\r\n", "bad-start-line", ""),
+        (b"HTTP/1.1 200\r\nST: x\r\n\r\n", "not-sdfr", ""),
+        (b"HTTP/1.1 404 Not Found\r\n\r\n", "unsupported", "404"),
+        (edit(ALIVE, NTS="ssdp:propchange"), "unsupported", "propchange"),
+        (ALIVE.replace(b"NT: ", b"NT "), "bad-header", "NT"),
+        (ALIVE.replace(b"\r\n\r\n", b"\r\n: empty name\r\n\r\n"), "bad-header", ""),
+        (ALIVE.replace(b"\r\n\r\n", b"\r\nX-SDFR-FLEET: 9\r\n\r\n"), "bad-header", "twice"),
+        (edit(ALIVE, drop=("BOOTID.UPNP.ORG",)), "missing-header", "BOOTID.UPNP.ORG"),
+        (edit(ALIVE, drop=("X-SDFR-DIGEST",)), "missing-header", "X-SDFR-DIGEST"),
+        (edit(ALIVE, drop=("LOCATION",)), "missing-header", "LOCATION"),
+        (edit(ALIVE, drop=("CACHE-CONTROL",)), "missing-header", "CACHE-CONTROL"),
+        (edit(ALIVE, drop=("NTS",)), "missing-header", "NTS"),
+        (edit(ALIVE, drop=("NT",)), "missing-header", "NT"),
+        (edit(UPDATE, drop=("X-SDFR-PART",)), "missing-header", "X-SDFR-PART"),
+        (edit(SEARCH, drop=("ST",)), "missing-header", "ST"),
+        (edit(ASYNC_UPNP_CLIENT_SEARCH, drop=("ST",)), "missing-header", "ST"),
+        (edit(RESPONSE, drop=("ST",)), "missing-header", "ST"),
+        (edit(ALIVE, X_SDFR_FLEET="256"), "bad-value", "X-SDFR-FLEET"),
+        (edit(ALIVE, X_SDFR_FLEET="x"), "bad-value", "X-SDFR-FLEET"),
+        (edit(ALIVE, X_SDFR_ROBOT="-bad"), "bad-value", "X-SDFR-ROBOT"),
+        (edit(ALIVE, X_SDFR_DIGEST="0123456789ABCDEF"), "bad-value", "X-SDFR-DIGEST"),
+        (edit(ALIVE, X_SDFR_VERSION="1e3"), "bad-value", "X-SDFR-VERSION"),
+        (edit(ALIVE, X_SDFR_VERSION=str(2**53 + 1)), "bad-value", "X-SDFR-VERSION"),
+        (edit(ALIVE, X_SDFR_VERSION="\u0661"), "bad-value", "X-SDFR-VERSION"),  # Arabic 1
+        (edit(ALIVE, X_SDFR_TYPE="update"), "bad-value", "X-SDFR-TYPE"),
+        (edit(SEARCH, X_SDFR_TYPE="response"), "bad-value", "X-SDFR-TYPE"),
+        (edit(RESPONSE, X_SDFR_TYPE="alive"), "bad-value", "X-SDFR-TYPE"),
+        (edit(ALIVE, BOOTID__UPNP__ORG=str(2**31)), "bad-value", "BOOTID"),
+        (edit(ALIVE, CONFIGID__UPNP__ORG="7"), "bad-value", "CONFIGID"),
+        (edit(ALIVE, NT="upnp:rootdevice"), "bad-value", "NT"),
+        (edit(ALIVE, USN="uuid:someone-else::x"), "bad-value", "USN"),
+        (edit(ALIVE, CACHE_CONTROL="no-cache"), "bad-value", "CACHE-CONTROL"),
+        (edit(ALIVE, CACHE_CONTROL="max-age=0"), "bad-value", "CACHE-CONTROL"),
+        (edit(ALIVE, LOCATION="x" * (MAX_LOCATION + 1)), "bad-value", "LOCATION"),
+        (edit(SEARCH, MAN="ssdp:alive"), "bad-value", "MAN"),
+        (edit(SEARCH, ST=""), "bad-value", "ST"),
+        (edit(SEARCH, X_SDFR_SEQ="-1"), "bad-value", "X-SDFR-SEQ"),
+        (edit(SEARCH, X_SDFR_WANT="1,x"), "bad-value", "X-SDFR-WANT"),
+        (edit(SEARCH, X_SDFR_WANT="256"), "bad-value", "X-SDFR-WANT"),
+        (edit(SEARCH, X_SDFR_WANT=""), "bad-value", "X-SDFR-WANT"),
+        (edit(SEARCH, X_SDFR_WANT_VERSION="v1"), "bad-value", "X-SDFR-WANT-VERSION"),
+        (edit(UPDATE, X_SDFR_PART="0/2"), "bad-value", "X-SDFR-PART"),
+        (edit(UPDATE, X_SDFR_PART="3/2"), "bad-value", "X-SDFR-PART"),
+        (edit(UPDATE, X_SDFR_PART="1/256"), "bad-value", "X-SDFR-PART"),
+        (edit(UPDATE, X_SDFR_PART="1"), "bad-value", "X-SDFR-PART"),
+        (edit(UPDATE, CONTENT_LENGTH="abc"), "bad-value", "CONTENT-LENGTH"),
+        (UPDATE[:-1], "bad-body", "CONTENT-LENGTH"),
+        (UPDATE + b"\r\n", "bad-body", "CONTENT-LENGTH"),
+        (with_body(b""), "bad-body", "JSON"),
+        (with_body(b"{"), "bad-body", "JSON"),
+        (with_body(b"[]"), "bad-body", "object"),
+        (with_body(b'{"services":{}}'), "bad-body", "list"),
+        (with_body(b'{"services":[1]}'), "bad-body", "services[0]"),
+        (with_body(b'{"services":[{"id":"a","name":"A"}]}'), "bad-body", "type"),
+        (
+            with_body(b'{"services":[{"id":"a","name":"A","type":"t","colour":"red"}]}'),
+            "bad-body",
+            "colour",
+        ),
+        (
+            with_body(
+                b'{"services":[{"id":"a","name":"A","type":"t"},{"id":"a","name":"B","type":"t"}]}'
+            ),
+            "bad-body",
+            "duplicate",
+        ),
+        (
+            with_body(b'{"services":[{"id":"a","name":"A","type":"t","attributes":{"x":NaN}}]}'),
+            "bad-body",
+            "NaN",
+        ),
+        (with_body(b"[" * 850), "bad-body", "JSON"),  # deep nesting, within the size limit
+        (with_body(b"[" * 400 + b"]" * 400), "bad-body", "object"),
+        (with_body(b'{"services":[{"id":"a","name":"\xff","type":"t"}]}'), "bad-body", ""),
+    ],
+)
+def test_decode_rejects(data: bytes, reason: str, detail: str) -> None:
+    check_reject(decode(data), reason, detail)
+
+
+def test_update_without_content_length_takes_the_rest() -> None:
+    data = edit(UPDATE, drop=("CONTENT-LENGTH",))
+    result = decode(data)
+    assert isinstance(result, Update) and len(result.services) == 2
+
+
+def test_digest_matches_model_fingerprint() -> None:
+    svcs = realistic_services(4)
+    origin = Origin(1, "r1", 1, 7, service_digest(svcs))
+    (data,) = encode_update_parts(origin, LOCATION, 60, svcs)
+    result = decode(data)
+    assert isinstance(result, Update)
+    assert result.origin.digest == service_digest(result.services)
+
+
+# --------------------------------------------------------------------------------------------
+# decode never raises
+
+START_LINES = [b"M-SEARCH * HTTP/1.1\r\n", b"NOTIFY * HTTP/1.1\r\n", b"HTTP/1.1 200 OK\r\n"]
+
+
+@given(data=st.binary(max_size=MAX_DATAGRAM + 100), fleet=st.none() | st.integers(0, 255))
+def test_decode_never_raises_on_random_bytes(data: bytes, fleet: int | None) -> None:
+    check_decoded(decode(data, fleet=fleet))
+
+
+@given(start=st.sampled_from(START_LINES), rest=st.binary(max_size=600))
+def test_decode_never_raises_after_a_valid_start_line(start: bytes, rest: bytes) -> None:
+    check_decoded(decode(start + rest))
+
+
+header_names = st.sampled_from(
+    sorted(headers_of(corpus()[1]) | headers_of(corpus()[5]) | headers_of(corpus()[2]))
+)
+
+
+@given(
+    start=st.sampled_from(START_LINES),
+    lines=st.lists(st.tuples(header_names, st.text(max_size=30)), max_size=25),
+    body=st.binary(max_size=200),
+)
+def test_decode_never_raises_on_header_soup(
+    start: bytes, lines: list[tuple[str, str]], body: bytes
+) -> None:
+    head = "".join(f"{name}: {value}\r\n" for name, value in lines).encode("utf-8", "replace")
+    check_decoded(decode(start + head + b"\r\n" + body))
+
+
+@given(
+    original=st.sampled_from(corpus()),
+    ops=st.lists(
+        st.tuples(
+            st.sampled_from(["flip", "truncate", "insert", "delete", "duplicate"]),
+            st.integers(0, MAX_DATAGRAM),
+            st.binary(min_size=1, max_size=8),
+        ),
+        min_size=1,
+        max_size=4,
+    ),
+    fleet=st.none() | st.integers(0, 5),
+)
+def test_decode_never_raises_on_mutated_datagrams(
+    original: bytes, ops: list[tuple[str, int, bytes]], fleet: int | None
+) -> None:
+    data = bytearray(original)
+    for op, where, chunk in ops:
+        at = where % (len(data) + 1)
+        if op == "flip" and data:
+            data[at % len(data)] ^= chunk[0] or 0x20
+        elif op == "truncate":
+            del data[at:]
+        elif op == "insert":
+            data[at:at] = chunk
+        elif op == "delete":
+            del data[at : at + len(chunk)]
+        else:
+            data[at:at] = data[at : at + 40]
+    result = decode(bytes(data), fleet=fleet)
+    check_decoded(result)
+    if not isinstance(result, Reject) and fleet is not None and result.origin is not None:
+        assert result.origin.fleet == fleet
