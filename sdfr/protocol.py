@@ -183,6 +183,8 @@ class Core:
         self._pings: dict[int, tuple[str, float]] = {}
         self._ping_seq = rng.randrange(1 << 30)
         self._parts_cache: tuple[tuple[int, int, str, str], list[bytes]] | None = None
+        #: The set every robot in range last heard by multicast: the base of the next delta.
+        self._announced: tuple[int, tuple[Service, ...]] | None = None
 
     # -- life cycle ------------------------------------------------------------------------
 
@@ -272,11 +274,15 @@ class Core:
         peer = self._heard(origin, src, now, getattr(msg, "location", None))
         if peer is None:
             return
+        soon = False
         if isinstance(msg, Update):
+            # More parts of a whole set are normally right behind this one; a delta we
+            # could not apply will not be followed by anything that helps.
+            soon = msg.base is None
             self._on_update(peer, msg, now)
         elif isinstance(msg, Response):
             self._on_response(peer, msg, now)
-        self._want_current(peer, now, soon=isinstance(msg, Update))
+        self._want_current(peer, now, soon=soon)
 
     def handle_timer(self, now: float) -> None:
         """Do whatever is due at `now`."""
@@ -288,7 +294,7 @@ class Core:
             self._search(now)
         if now >= self._update_at:
             self._update_at = math.inf
-            self._send_update_parts(None)
+            self._announce_change()
         if now >= self._reply_at:
             self._flush_replies()
         if now >= self._next_beacon:
@@ -414,6 +420,9 @@ class Core:
             return  # an older set than the one announced since; the newer will come
         if peer.current:
             return  # a duplicate, or parts of a set we completed already
+        if msg.base is not None:
+            self._apply_delta(peer, msg)
+            return
         f = peer.fetch
         if f is None or (f.boot_id, f.version, f.digest) != (o.boot_id, o.version, o.digest):
             f = peer.fetch = _Fetch(
@@ -437,6 +446,24 @@ class Core:
             return
         peer.services = services
         peer.held = (o.boot_id, o.version, o.digest)
+        self._dirty.add(peer.robot_id)
+
+    def _apply_delta(self, peer: Peer, msg: Update) -> None:
+        """Turn the set we hold into the announced one; without its base, fetch it whole."""
+        o = msg.origin
+        if peer.held is None or peer.held[:2] != (o.boot_id, msg.base):
+            return
+        changed = {s.id: s for s in msg.services}
+        gone = set(msg.removed)
+        services = [changed.pop(s.id, s) for s in peer.services if s.id not in gone]
+        services.extend(changed.values())
+        result = tuple(services)
+        if service_digest(result) != o.digest:
+            self.counters.rejects["bad-digest"] += 1
+            return
+        peer.services = result
+        peer.held = (o.boot_id, o.version, o.digest)
+        peer.fetch = None
         self._dirty.add(peer.robot_id)
 
     def _on_response(self, peer: Peer, msg: Response, now: float) -> None:
@@ -611,12 +638,46 @@ class Core:
             self._parts_cache = (key, parts)
         return self._parts_cache[1]
 
+    def _announce_change(self) -> None:
+        """Multicast what changed since the last announcement: a delta when it is smaller."""
+        prev = self._announced
+        if prev is None or prev[0] >= self.version:
+            self._send_update_parts(None)
+            return
+        old = {s.id: s for s in prev[1]}
+        new_ids = {s.id for s in self.services}
+        added = tuple(s for s in self.services if old.get(s.id) != s)
+        removed = tuple(sid for sid in old if sid not in new_ids)
+        delta = Update(
+            self._origin(),
+            self.location,
+            self.config.max_age,
+            0,
+            1,
+            added,
+            base=prev[0],
+            removed=removed,
+        )
+        try:
+            data = wire.encode(delta, group=self.config.group, port=self.config.port)
+        except ValueError:  # too large for one datagram: the whole set, in parts
+            self._send_update_parts(None)
+            return
+        if len(data) >= sum(map(len, self._update_parts())):
+            self._send_update_parts(None)
+            return
+        self._announced = (self.version, self.services)
+        self._reply_to.clear()
+        self._reply_at = math.inf
+        self._emit(data, None, "update")
+
     def _send_update_parts(self, dst: Addr | None, only: Sequence[int] | None = None) -> None:
         if dst is None:
             # A multicast set answers every pending search too.
             self._reply_to.clear()
             self._reply_at = math.inf
             self._update_at = math.inf
+            self._announced = (self.version, self.services)
         parts = self._update_parts()
         for i, data in enumerate(parts):
             if only is None or i in only:

@@ -19,7 +19,7 @@ from typing import Literal, NoReturn, TypeAlias
 
 from sdfr import __version__
 from sdfr.errors import ValidationError
-from sdfr.model import ROBOT_ID_RE, Service
+from sdfr.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
 
 __all__ = [
     "DEFAULT_GROUP",
@@ -132,6 +132,10 @@ class Update:
     part: int  # 0-based
     parts: int  # 1..255; on the wire X-SDFR-PART is "<part+1>/<parts>"
     services: tuple[Service, ...]
+    #: A delta (always one part): the set of version `base` with `removed` ids taken out and
+    #: `services` added or replaced gives the set of `origin.version`. None: a whole set's part.
+    base: int | None = None
+    removed: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -206,8 +210,14 @@ def encode(msg: Message, *, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT
         _check_update_shape(msg.part, msg.parts)
         blobs = [_service_json(s) for s in msg.services]
         _check_unique_ids(msg.services)
-        body = _body(blobs)
         prefix = _update_prefix(msg.origin, msg.location, msg.max_age, _host(group, port))
+        if msg.base is not None:
+            body = _delta_body(msg)
+            prefix += f"X-SDFR-BASE: {msg.base}\r\n".encode()
+        else:
+            if msg.removed:
+                raise ValueError("removed ids belong to a delta Update (base is None)")
+            body = _body(blobs)
         suffix = _update_suffix(str(msg.part + 1), str(msg.parts), str(len(body)))
         return _finish(prefix + suffix, body, "Update")
     if isinstance(msg, Discovery):
@@ -345,6 +355,19 @@ def _service_json(service: Service) -> bytes:
 
 def _body(blobs: Sequence[bytes]) -> bytes:
     return _BODY_OPEN + b",".join(blobs) + _BODY_CLOSE
+
+
+def _delta_body(msg: Update) -> bytes:
+    if (msg.part, msg.parts) != (0, 1):
+        raise ValueError("a delta Update is a single part (part 0 of 1)")
+    if msg.base is None or not 0 <= msg.base < msg.origin.version:
+        raise ValueError(f"delta base {msg.base} must be below version {msg.origin.version}")
+    if len(set(msg.removed)) != len(msg.removed) or any(
+        not SERVICE_ID_RE.fullmatch(r) for r in msg.removed
+    ):
+        raise ValueError(f"removed ids must be unique service ids: {msg.removed!r}")
+    removed = _JSON_ENCODER.encode(list(msg.removed)).encode()
+    return _body([_service_json(s) for s in msg.services])[:-1] + b',"removed":' + removed + b"}"
 
 
 def _origin_lines(origin: Origin, kind: str) -> list[str]:
@@ -685,7 +708,17 @@ def _decode_notify(headers: dict[str, str], body: bytes) -> Alive | Update | Bye
     if kind == "alive":
         return Alive(origin, location, max_age)
     part, parts = _decode_part(_need(headers, "X-SDFR-PART"))
-    return Update(origin, location, max_age, part, parts, _decode_services(headers, body))
+    base_text = headers.get("X-SDFR-BASE")
+    if base_text is None:
+        services, removed = _decode_services(headers, body, delta=False)
+        return Update(origin, location, max_age, part, parts, services)
+    base = _int_value("X-SDFR-BASE", base_text, 0, MAX_VERSION)
+    if base >= origin.version or (part, parts) != (0, 1):
+        raise _Rejected(
+            "bad-value", f"X-SDFR-BASE {base} on part {part + 1}/{parts} of {origin.version}"
+        )
+    services, removed = _decode_services(headers, body, delta=True)
+    return Update(origin, location, max_age, 0, 1, services, base, removed)
 
 
 def _decode_origin(headers: dict[str, str], kind: str) -> Origin:
@@ -756,7 +789,9 @@ def _decode_part(value: str) -> tuple[int, int]:
     return part - 1, parts
 
 
-def _decode_services(headers: dict[str, str], body: bytes) -> tuple[Service, ...]:
+def _decode_services(
+    headers: dict[str, str], body: bytes, *, delta: bool
+) -> tuple[tuple[Service, ...], tuple[str, ...]]:
     length = headers.get("CONTENT-LENGTH")
     if length is not None:
         want = _int_value("CONTENT-LENGTH", length, 0, MAX_DATAGRAM)
@@ -782,7 +817,16 @@ def _decode_services(headers: dict[str, str], body: bytes) -> tuple[Service, ...
             raise _Rejected("bad-body", f"services[{i}]: duplicate id {service.id!r}")
         ids.add(service.id)
         services.append(service)
-    return tuple(services)
+    removed = obj.get("removed", [])
+    if removed and not delta:
+        raise _Rejected("bad-body", '"removed" only belongs to a delta (X-SDFR-BASE)')
+    if not isinstance(removed, list) or not all(
+        isinstance(r, str) and SERVICE_ID_RE.fullmatch(r) for r in removed
+    ):
+        raise _Rejected("bad-body", '"removed" must be a list of service ids')
+    if len(set(removed)) != len(removed) or ids.intersection(removed):
+        raise _Rejected("bad-body", '"removed" ids must be unique and not also added')
+    return tuple(services), tuple(removed)
 
 
 def _parse_want(value: str) -> Want:

@@ -361,3 +361,36 @@ def test_core_next_deadline_and_idle_core() -> None:
     core.stop(1.0)
     assert [wire.decode(d).__class__.__name__ for d, _ in core.datagrams_to_send()] == ["Byebye"]
     assert core.next_deadline() is None
+
+
+def test_a_single_change_goes_out_as_one_small_delta() -> None:
+    net = SimNet(seed=61)
+    names = fleet(net, 3)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    t0 = net.now
+    bigger = [*services("r1"), Service("extra", "extra", "sensor.extra")]
+    net.set_services("r1", 2, bigger)
+    net.wait_until(lambda: net.all_see_all(names), timeout=0.5)
+    sent = [d for t, d, _ in net.nodes["r1"].sent if t >= t0 and b"ssdp:update" in d]
+    assert len(sent) == 1 and b"X-SDFR-BASE: 1" in sent[0] and len(sent[0]) < 700
+    net.set_services("r1", 3, bigger[1:])  # an unpublish is a delta too
+    net.wait_until(lambda: net.all_see_all(names), timeout=0.5)
+    sent = [d for t, d, _ in net.nodes["r1"].sent if t >= t0 and b"ssdp:update" in d]
+    assert len(sent) == 2 and b'"removed":["r1-s0"]' in sent[1]
+
+
+def test_a_delta_without_its_base_fetches_the_whole_set() -> None:
+    net = SimNet(seed=62)
+    names = fleet(net, 3, n_services=30)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    net.filter = lambda src, dst, data: not (dst == "r2" and b"X-SDFR-BASE: 1" in data)
+    net.set_services("r1", 2, services("r1", 31))
+    net.run_for(0.1)
+    net.filter = None
+    t0 = net.now
+    net.set_services("r1", 3, services("r1", 32))
+    net.wait_until(lambda: net.all_see_all(names), timeout=1.0)
+    asks = [d for t, d, dst in net.nodes["r2"].sent if t >= t0 and b"X-SDFR-WANT: all" in d]
+    assert asks  # r2 missed base 2, so it asked r1 for version 3 whole

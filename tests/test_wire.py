@@ -812,3 +812,31 @@ def test_decode_never_raises_on_mutated_datagrams(
     check_decoded(result)
     if not isinstance(result, Reject) and fleet is not None and result.origin is not None:
         assert result.origin.fleet == fleet
+
+
+def test_delta_update_round_trip_and_rules() -> None:
+    origin = Origin(3, "r1", 2, 8, "0123456789abcdef")
+    added = (Service("n1", "new", "sensor.x", None, {"k": 1}),)
+    delta = Update(origin, "http://10.3.0.1:8701/d", 30, 0, 1, added, base=7, removed=("a", "b"))
+    data = encode(delta)
+    assert b"X-SDFR-BASE: 7\r\n" in data and b'"removed":["a","b"]' in data
+    assert decode(data) == delta
+    # A whole set's part carries no "removed"; a delta is one part, based below its version.
+    whole = Update(origin, "http://10.3.0.1:8701/d", 30, 0, 1, added)
+    assert decode(encode(whole)) == whole
+    with pytest.raises(ValueError):
+        encode(Update(origin, "http://x/", 30, 0, 1, added, removed=("a",)))
+    with pytest.raises(ValueError):
+        encode(Update(origin, "http://x/", 30, 0, 1, added, base=8))
+    with pytest.raises(ValueError):
+        encode(Update(origin, "http://x/", 30, 0, 2, added, base=1))
+    forged = encode(whole).replace(b'"services":[', b'"removed":["a"],"services":[')
+    forged = forged.replace(
+        b"CONTENT-LENGTH: " + str(len(encode(whole).split(b"\r\n\r\n", 1)[1])).encode(),
+        b"CONTENT-LENGTH: " + str(len(forged.split(b"\r\n\r\n", 1)[1])).encode(),
+    )
+    rejected = decode(forged)
+    assert isinstance(rejected, Reject) and rejected.reason == "bad-body"
+    bad_base = data.replace(b"X-SDFR-BASE: 7", b"X-SDFR-BASE: 9")
+    rejected = decode(bad_base)
+    assert isinstance(rejected, Reject) and rejected.reason == "bad-value"
