@@ -1,0 +1,91 @@
+"""Configuration: defaults, TOML file, flags, and errors that name the key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sdfr.config import Config, build_parser, from_args, to_args
+from sdfr.daemon import supervisor
+from sdfr.errors import ConfigError
+
+
+def test_defaults_are_the_papers() -> None:
+    cfg = from_args([])
+    assert cfg.beacon_interval == 10.0 and cfg.miss_limit == 3
+    assert cfg.api == "127.0.0.1:8700"
+    assert cfg.effective_ping_interval == 5.0
+
+
+def test_toml_then_flags_override(tmp_path: Path) -> None:
+    conf = tmp_path / "sdfrd.toml"
+    conf.write_text(
+        '[sdfrd]\nfleet = 7\nbeacon-interval = 2.5\nrobot_id = "scout-1"\napi = "127.0.0.1:9000"\n'
+    )
+    cfg = from_args(["--config", str(conf), "--fleet", "8"])
+    assert (cfg.fleet, cfg.beacon_interval, cfg.robot_id, cfg.api) == (
+        8,
+        2.5,
+        "scout-1",
+        "127.0.0.1:9000",
+    )
+    # A top-level table works too.
+    conf.write_text("fleet = 9\n")
+    assert from_args(["--config", str(conf)]).fleet == 9
+
+
+@pytest.mark.parametrize(
+    ("text", "word"),
+    [
+        ("fleet = 300\n", "fleet"),
+        ('fleet = "x"\n', "fleet"),
+        ("beacon_interval = 0\n", "beacon_interval"),
+        ('api = "nowhere"\n', "api"),
+        ('group = "10.0.0.1"\n', "group"),
+        ("colour = 1\n", "unknown key 'colour'"),
+        ("fleet = \n", "not valid TOML"),
+        ('robot_id = "has space"\n', "robot_id"),
+    ],
+)
+def test_bad_config_file_names_the_key(tmp_path: Path, text: str, word: str) -> None:
+    conf = tmp_path / "bad.toml"
+    conf.write_text(text)
+    with pytest.raises(ConfigError, match=word):
+        from_args(["--config", str(conf)])
+
+
+def test_missing_config_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        from_args(["--config", str(tmp_path / "nope.toml")])
+
+
+def test_to_args_round_trips() -> None:
+    cfg = Config(iface="eth0", fleet=4, robot_id="r9", beacon_interval=1.5, state_dir=Path("/x"))
+    assert from_args(to_args(cfg)) == cfg
+
+
+def test_help_documents_every_option() -> None:
+    text = build_parser().format_help()
+    for flag in (
+        "--iface",
+        "--fleet",
+        "--api",
+        "--config",
+        "--state-dir",
+        "--beacon-interval",
+        "--robot-id",
+        "--miss-limit",
+        "--describe",
+    ):
+        assert flag in text
+
+
+def test_sdfrd_reports_bad_flags_in_one_line(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    assert supervisor.main(["--iface", "nope0", "--state-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sdfrd: iface:") and err.count("\n") == 1
+    assert supervisor.main(["--iface", "lo", "--beacon-interval", "-1"]) == 2
+    assert "beacon_interval" in capsys.readouterr().err

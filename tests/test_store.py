@@ -1,0 +1,78 @@
+"""The durable state shared by the two layers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sdfr.model import Service, service_digest
+from sdfr.store import PeerRecord, Store, StoreError
+
+
+def peer(robot: str, services: tuple[Service, ...], reachable: bool = True) -> PeerRecord:
+    return PeerRecord(
+        robot,
+        "10.1.0.2",
+        "http://10.1.0.2:8701/description.json",
+        1,
+        3,
+        service_digest(services),
+        reachable,
+        100.0,
+        200.0,
+        0.9,
+        1.5,
+        10,
+        services,
+    )
+
+
+def test_registrations_and_versions_survive_reopening(tmp_path: Path) -> None:
+    a = Store(tmp_path)
+    assert a.local_state() == (0, [])
+    assert a.add_service(Service("s1", "cam", "sensor.camera")) == 1
+    assert a.add_service(Service("s2", "lidar", "sensor.lidar")) == 2
+    assert a.remove_service("s1") == 3
+    assert a.remove_service("s1") is None
+    with pytest.raises(StoreError, match="exists"):
+        a.add_service(Service("s2", "dup", "x"))
+    a.close()
+    b = Store(tmp_path)
+    assert b.local_state() == (3, [Service("s2", "lidar", "sensor.lidar")])
+
+
+def test_boot_ids_only_grow(tmp_path: Path) -> None:
+    assert [Store(tmp_path).next_boot_id() for _ in range(3)] == [1, 2, 3]
+
+
+def test_history_round_trip_and_cross_connection_visibility(tmp_path: Path) -> None:
+    writer, reader = Store(tmp_path), Store(tmp_path)
+    before = reader.data_version()
+    svcs = (Service("x", "arm", "actuator.arm", "http://a/", {"dof": 6, "ok": True}),)
+    writer.save_peers([peer("r2", svcs), peer("r3", (), reachable=False)])
+    assert reader.data_version() != before
+    got = {p.robot_id: p for p in reader.load_peers()}
+    assert got["r2"] == peer("r2", svcs) and not got["r3"].reachable
+    writer.mark_all_unreachable()
+    assert not any(p.reachable for p in reader.load_peers())
+
+
+def test_status_is_a_file_that_does_not_touch_the_database(tmp_path: Path) -> None:
+    writer, reader = Store(tmp_path), Store(tmp_path)
+    assert reader.read_status() == {}
+    version = reader.data_version()
+    writer.write_status({"pid": 1})
+    status = reader.read_status()
+    assert status["pid"] == 1 and status["heartbeat"] > 0
+    assert reader.data_version() == version
+
+
+def test_unusable_state_dir_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "state.db").write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(StoreError, match="not a usable SDfR database"):
+        Store(tmp_path)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(StoreError, match="cannot create"):
+        Store(blocker / "sub")
