@@ -39,13 +39,14 @@ class Config:
     port: int = 1900
     miss_limit: int = 3
     ping_interval: float | None = None
+    ping_window: int = 20
     reply_delay_max: float = 0.5
     ttl: int = 1
     log_level: str = "info"
 
     @property
     def effective_ping_interval(self) -> float:
-        return self.ping_interval if self.ping_interval is not None else self.beacon_interval / 2
+        return self.ping_interval if self.ping_interval is not None else self.beacon_interval
 
     def validate(self) -> Config:
         """Return self, or raise ConfigError naming the key that is wrong."""
@@ -75,6 +76,8 @@ class Config:
             raise ConfigError(f"miss_limit: must be 1-100 beacon periods, got {self.miss_limit}")
         if self.ping_interval is not None and not 0.02 <= self.ping_interval <= 3600:
             raise ConfigError(f"ping_interval: must be 0.02-3600 seconds, got {self.ping_interval}")
+        if not 1 <= self.ping_window <= 10000:
+            raise ConfigError(f"ping_window: must be 1-10000 pings, got {self.ping_window}")
         if not 0 <= self.reply_delay_max <= 5:
             raise ConfigError(f"reply_delay_max: must be 0-5 seconds, got {self.reply_delay_max}")
         if not 1 <= self.ttl <= 255:
@@ -115,8 +118,9 @@ _HELP: dict[str, str] = {
     "group": "IPv4 multicast group (default 239.255.255.250)",
     "port": "UDP port (default 1900)",
     "miss_limit": "beacon periods of silence after which a peer is unreachable (default 3)",
-    "ping_interval": "seconds between unicast pings to each reachable peer (default: half the "
-    "beacon interval)",
+    "ping_interval": "seconds between unicast pings to each reachable peer (default: the beacon "
+    "interval)",
+    "ping_window": "how many recent pings the connection indicator counts (default 20)",
     "reply_delay_max": "longest random delay before answering a Discovery, bounded by its MX "
     "(default 0.5)",
     "ttl": "multicast TTL (default 1: one radio hop)",
@@ -129,6 +133,7 @@ def _coerce(name: str, raw: Any) -> Any:
         "fleet": int,
         "port": int,
         "miss_limit": int,
+        "ping_window": int,
         "ttl": int,
         "beacon_interval": float,
         "ping_interval": float,

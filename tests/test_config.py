@@ -15,7 +15,7 @@ def test_defaults_are_the_papers() -> None:
     cfg = from_args([])
     assert cfg.beacon_interval == 10.0 and cfg.miss_limit == 3
     assert cfg.api == "127.0.0.1:8700"
-    assert cfg.effective_ping_interval == 5.0
+    assert cfg.effective_ping_interval == 10.0 and cfg.ping_window == 20
 
 
 def test_toml_then_flags_override(tmp_path: Path) -> None:

@@ -73,6 +73,7 @@ class DiscoveryLayer:
                 beacon_interval=cfg.beacon_interval,
                 miss_limit=cfg.miss_limit,
                 ping_interval=cfg.effective_ping_interval,
+                ping_window=cfg.ping_window,
                 reply_delay_max=cfg.reply_delay_max,
                 group=cfg.group,
                 port=cfg.port,
