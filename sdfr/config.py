@@ -60,7 +60,7 @@ class Config:
             raise ConfigError(
                 f"beacon_interval: must be 0.05-3600 seconds, got {self.beacon_interval}"
             )
-        if self.robot_id is not None and not ROBOT_ID_RE.match(self.robot_id):
+        if self.robot_id is not None and not ROBOT_ID_RE.fullmatch(self.robot_id):
             raise ConfigError(
                 f"robot_id: {self.robot_id!r} must be 1-64 characters of A-Z a-z 0-9 . _ -"
             )

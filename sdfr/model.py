@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -56,7 +57,7 @@ class Service:
         if unknown:
             raise ValidationError(unknown[0], "unknown field")
         sid = service_id if service_id is not None else obj.get("id")
-        if not isinstance(sid, str) or not SERVICE_ID_RE.match(sid):
+        if not isinstance(sid, str) or not SERVICE_ID_RE.fullmatch(sid):
             raise ValidationError("id", "must be 1-64 characters of A-Z a-z 0-9 . _ -")
         name = obj.get("name")
         if not isinstance(name, str) or not name.strip():
@@ -64,7 +65,7 @@ class Service:
         if len(name) > MAX_NAME:
             raise ValidationError("name", f"must be at most {MAX_NAME} characters")
         stype = obj.get("type")
-        if not isinstance(stype, str) or not TYPE_RE.match(stype):
+        if not isinstance(stype, str) or not TYPE_RE.fullmatch(stype):
             raise ValidationError(
                 "type",
                 "is required: 1-128 characters of A-Z a-z 0-9 . _ : / -, starting with a "
@@ -89,8 +90,8 @@ class Service:
                 raise ValidationError(where, "values must be strings, numbers or booleans")
             if isinstance(value, str) and len(value) > MAX_ATTR_VALUE:
                 raise ValidationError(where, f"at most {MAX_ATTR_VALUE} characters")
-            if isinstance(value, float) and value != value:  # NaN has no JSON form
-                raise ValidationError(where, "NaN is not a value")
+            if isinstance(value, float) and not math.isfinite(value):  # no JSON form
+                raise ValidationError(where, "NaN and infinite numbers are not values")
             clean[key] = value
         return cls(id=sid, name=name, type=stype, url=url, attributes=clean)
 
@@ -124,7 +125,7 @@ def service_digest(services: Iterable[Service]) -> str:
 
 
 def check_robot_id(robot_id: str) -> str:
-    if not ROBOT_ID_RE.match(robot_id):
+    if not ROBOT_ID_RE.fullmatch(robot_id):
         raise ValidationError(
             "robot_id", "must be 1-64 characters of A-Z a-z 0-9 . _ -, starting alphanumeric"
         )

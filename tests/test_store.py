@@ -76,3 +76,29 @@ def test_unusable_state_dir_is_a_clear_error(tmp_path: Path) -> None:
     blocker.write_text("")
     with pytest.raises(StoreError, match="cannot create"):
         Store(blocker / "sub")
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"name": "x", "type": "t", "attributes": {"a": float("inf")}}, "attributes.a"),
+        ({"name": "x", "type": "t\n"}, "type"),
+        ({"name": "", "type": "t"}, "name"),
+    ],
+)
+def test_service_validation_names_the_field(body: dict[str, object], field: str) -> None:
+    from sdfr.errors import ValidationError
+
+    with pytest.raises(ValidationError) as info:
+        Service.from_json(body, service_id="abc")
+    assert info.value.field == field
+
+
+def test_ids_with_a_trailing_newline_are_refused() -> None:
+    from sdfr.errors import ValidationError
+    from sdfr.model import check_robot_id
+
+    with pytest.raises(ValidationError):
+        check_robot_id("abc\n")
+    with pytest.raises(ValidationError):
+        Service.from_json({"id": "a\n", "name": "x", "type": "t"})
