@@ -23,7 +23,7 @@ test: $(STAMP)
 check: $(STAMP)
 	$(BIN)/ruff check $(LINT_PATHS)
 	$(BIN)/ruff format --check $(LINT_PATHS)
-	$(BIN)/mypy --strict sdfr
+	$(BIN)/mypy --strict sdfr netlab
 
 fmt: $(STAMP)
 	$(BIN)/ruff check --fix $(LINT_PATHS)

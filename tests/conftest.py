@@ -20,6 +20,7 @@ import subprocess
 import time
 from collections.abc import Callable, Iterator
 from functools import cache
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -30,6 +31,7 @@ from tests.nsfleet import PREFIX, NsFleet, name_pid, unique_name
 ROOT_SKIP_REASON = "needs root and network namespaces (CI runs as root)"
 
 _baseline_ns: set[str] = set()
+_baseline_manifests: set[str] = set()
 _attributed: dict[str, str] = {}  # leftover (ns name or "pid N") -> first test after which seen
 _leaks: list[str] = []  # filled at session finish, printed in the summary
 
@@ -90,8 +92,20 @@ def nsfleet_factory() -> Iterator[Callable[..., NsFleet]]:
 
 
 # -- leak check -------------------------------------------------------------
+NETLAB_PREFIX = "nl-"
+NETLAB_MANIFESTS = Path("/run/netlab")
+
+
 def _sdfr_namespaces() -> set[str]:
-    return {ns for ns in netns.listnetns() if ns.startswith(PREFIX)}
+    return {ns for ns in netns.listnetns() if ns.startswith((PREFIX, NETLAB_PREFIX))}
+
+
+def _manifests() -> set[str]:
+    """netlab labs still recorded as up (a lab that was not taken down)."""
+    try:
+        return {p.name for p in NETLAB_MANIFESTS.glob("*.json")}
+    except OSError:
+        return set()
 
 
 def _foreign(ns: str) -> bool:
@@ -129,6 +143,7 @@ def _children() -> dict[int, str]:
 
 def pytest_sessionstart(session: pytest.Session) -> None:
     _baseline_ns.update(_sdfr_namespaces())
+    _baseline_manifests.update(_manifests())
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -162,6 +177,10 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         leaks.append(f"network namespace {ns} left behind, seen after {where}")
         with contextlib.suppress(OSError):
             netns.remove(ns)
+    for manifest in sorted(_manifests() - _baseline_manifests):
+        leaks.append(
+            f"netlab lab manifest {NETLAB_MANIFESTS / manifest} left behind (lab not down)"
+        )
     if leaks and session.exitstatus in (pytest.ExitCode.OK, pytest.ExitCode.NO_TESTS_COLLECTED):
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 

@@ -1,0 +1,176 @@
+"""Taking a lab down: its processes, its namespaces, its workdir and its manifest.
+
+Used by `Lab.down()` and by `netlab down NAME` after the runner died, so
+both remove the same things the same way:
+
+1. every recorded process that is still ours (inside one of the lab's
+   namespaces, or with the recorded start time, so a reused pid is never
+   hit) gets SIGTERM (its process group: sdfrd says Byebye), then SIGKILL
+   after a grace period;
+2. anything still running inside the lab's namespaces is ours by
+   definition and is killed by pid;
+3. the namespaces are deleted, recorded ones and any named ``nl-<lab>-*``;
+   the bridge, veths, nft table and qdiscs go with them;
+4. a workdir the lab made itself is removed, then the manifest; the last
+   lab to go puts back the host's ARP table limits (`netlab.hostlimits`).
+
+Nothing is matched by process name or command line.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from netlab import hostlimits, kernel, manifest, naming
+from netlab.errors import KernelError
+from netlab.manifest import Manifest, ProcRecord
+
+TERM_GRACE = 5.0
+KILL_WAIT = 5.0
+
+
+def proc_stat(pid: int) -> list[str] | None:
+    """Fields of /proc/<pid>/stat from the state on (field 3), or None if gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
+def start_time(pid: int) -> int | None:
+    """When `pid` started, in clock ticks since boot (stat field 22)."""
+    fields = proc_stat(pid)
+    return int(fields[19]) if fields is not None and len(fields) > 19 else None
+
+
+def running(pid: int) -> bool:
+    """True while `pid` exists and is not a zombie."""
+    fields = proc_stat(pid)
+    return fields is not None and fields[0] != "Z"
+
+
+def netns_of(pid: int) -> tuple[int, int] | None:
+    try:
+        st = os.stat(f"/proc/{pid}/ns/net")
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+def is_ours(rec: ProcRecord, inodes: set[tuple[int, int]]) -> bool:
+    """The recorded process is alive and still the one we started."""
+    if not running(rec.pid):
+        return False
+    return netns_of(rec.pid) in inodes or start_time(rec.pid) == rec.start
+
+
+def pids_inside(inodes: set[tuple[int, int]]) -> list[int]:
+    """Every live process whose network namespace is one of `inodes` (never ourselves)."""
+    me = os.getpid()
+    out: list[int] = []
+    for entry in os.listdir("/proc"):
+        pid = int(entry) if entry.isdigit() else me
+        if pid != me and netns_of(pid) in inodes and running(pid):
+            out.append(pid)
+    return out
+
+
+def signal_process(pid: int, sig: int) -> None:
+    """`sig` to the process group `pid` leads (lab processes have a session each), else to `pid`."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        if os.getpgid(pid) == pid:
+            os.killpg(pid, sig)
+        else:
+            os.kill(pid, sig)
+
+
+def wait_gone(pids: Iterable[int], timeout: float) -> list[int]:
+    """Wait until none of `pids` runs; those still running at the deadline."""
+    left = [p for p in pids if running(p)]
+    deadline = time.monotonic() + timeout
+    while left and time.monotonic() < deadline:
+        time.sleep(0.02)
+        left = [p for p in left if running(p)]
+    return left
+
+
+def stop_processes(
+    records: Iterable[ProcRecord], inodes: set[tuple[int, int]], grace: float
+) -> list[int]:
+    """SIGTERM, then SIGKILL after `grace`, to each recorded process that is still ours."""
+    ours = [r.pid for r in records if is_ours(r, inodes)]
+    for pid in ours:
+        signal_process(pid, signal.SIGTERM)
+    for pid in wait_gone(ours, grace):
+        signal_process(pid, signal.SIGKILL)
+    return ours
+
+
+def kill_inside(inodes: set[tuple[int, int]]) -> list[int]:
+    """SIGKILL whatever still runs inside the namespaces; the pids killed."""
+    killed: list[int] = []
+    for _ in range(3):  # a dying parent may still fork: look again
+        pids = pids_inside(inodes)
+        if not pids:
+            break
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, signal.SIGKILL)
+        killed += pids
+        wait_gone(pids, KILL_WAIT)
+    return killed
+
+
+@dataclass(slots=True)
+class SweepResult:
+    processes: list[int] = field(default_factory=list)
+    namespaces: list[str] = field(default_factory=list)
+    workdir: str | None = None
+    manifest: bool = False
+
+    @property
+    def empty(self) -> bool:
+        return not (self.processes or self.namespaces or self.workdir or self.manifest)
+
+
+def sweep(name: str, record: Manifest | None, grace: float = TERM_GRACE) -> SweepResult:
+    """Remove everything of lab `name` (see the module doc); KernelError if something stays."""
+    naming.check_lab_name(name)
+    result = SweepResult()
+    recorded = record.namespaces if record is not None else []
+    namespaces = sorted(
+        {ns for ns in recorded if ns in kernel.list_ns()} | set(kernel.list_ns(naming.prefix(name)))
+    )
+    inodes = {i for i in (kernel.ns_inode(ns) for ns in namespaces) if i is not None}
+    if record is not None:
+        result.processes += stop_processes(record.processes, inodes, grace)
+    if inodes:
+        result.processes += [p for p in kill_inside(inodes) if p not in result.processes]
+    errors: list[str] = []
+    left = pids_inside(inodes) if inodes else []
+    if left:
+        errors.append(f"processes {left} inside the lab's namespaces did not die")
+    for ns in namespaces:
+        try:
+            if kernel.remove_ns(ns):
+                result.namespaces.append(ns)
+        except KernelError as exc:
+            errors.append(str(exc))
+    if errors:
+        # The manifest stays, so that another `netlab down` can finish the job.
+        raise KernelError(f"lab {name}: " + "; ".join(errors))
+    owned = record.workdir if record is not None and record.workdir_owned else ""
+    if owned and Path(owned).exists():
+        shutil.rmtree(owned, ignore_errors=True)
+        result.workdir = owned
+    result.manifest = manifest.remove(name)
+    hostlimits.restore_if_last()
+    return result

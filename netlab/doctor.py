@@ -1,0 +1,215 @@
+"""What this kernel can do for netlab, found by trying it in a throwaway namespace.
+
+Never by reading version strings: kernels are configured, not numbered.
+The probe namespace is ``nl_doctor_<pid>`` (underscores, so that it can
+never match a lab's ``nl-<lab>-`` prefix) and is always removed.
+"""
+
+from __future__ import annotations
+
+import errno
+import functools
+import os
+import shutil
+import subprocess
+from dataclasses import dataclass, field
+
+from pyroute2 import IPRoute, netns
+from pyroute2.netlink.exceptions import NetlinkError
+from pyroute2.netlink.rtnl import TC_H_ROOT
+
+from netlab import hostlimits
+from netlab.errors import NetlabError, describe
+
+PROBE_TABLE = "doctor"
+
+
+@dataclass(frozen=True, slots=True)
+class Capabilities:
+    """One probe's findings; `why` says why a capability is missing."""
+
+    root: bool = False
+    netns: bool = False
+    veth_bridge: bool = False
+    nft_bridge: bool = False
+    numgen: bool = False
+    netem: bool = False
+    tbf: bool = False
+    gc_thresh3: int = 0  # the host-wide ARP table limit (0: unknown)
+    why: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def lab(self) -> bool:
+        """Enough for a lab: namespaces, veths into a bridge, a bridge nft table."""
+        return self.root and self.netns and self.veth_bridge and self.nft_bridge
+
+
+def _nft(ns: str, text: str) -> None:
+    subprocess.run(
+        ["ip", "netns", "exec", ns, "nft", "-f", "-"],
+        input=text,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
+
+
+def probe() -> Capabilities:
+    """Try each capability in a namespace of its own; never raises."""
+    why: dict[str, str] = {}
+    if os.geteuid() != 0:
+        return Capabilities(why={"root": "not running as root: netlab needs root (sudo)"})
+    missing = [tool for tool in ("ip", "nft") if shutil.which(tool) is None]
+    if missing:
+        why["tools"] = f"{' and '.join(missing)} not found: apt-get install iproute2 nftables"
+    name = f"nl_doctor_{os.getpid()}"
+    found: dict[str, bool] = {}
+    if name in netns.listnetns():  # left by a killed doctor whose pid we now have
+        netns.remove(name)
+    try:
+        ipr = IPRoute(netns=name, flags=os.O_CREAT | os.O_EXCL)
+    except Exception as exc:
+        why["netns"] = describe(exc, "creating a network namespace")
+        return Capabilities(root=True, why=why)
+    try:
+        found["netns"] = True
+        try:
+            ipr.link("add", ifname="pa", kind="veth", peer={"ifname": "pb"})
+            ipr.link("add", ifname="pbr", kind="bridge")
+            pa = ipr.link_lookup(ifname="pa")[0]
+            ipr.link("set", index=pa, master=ipr.link_lookup(ifname="pbr")[0], state="up")
+            found["veth_bridge"] = True
+        except Exception as exc:
+            why["veth_bridge"] = describe(exc, "a veth pair into a bridge")
+            pa = ipr.link_lookup(ifname="lo")[0]
+        for kind, opts in (
+            ("netem", {"delay": 1000}),
+            ("tbf", {"rate": 125_000, "burst": 3028, "latency": 50_000}),
+        ):
+            try:
+                ipr.tc("add", kind=kind, index=pa, handle=0x10000, **opts)
+                ipr.tc("del", index=pa, parent=TC_H_ROOT)
+                found[kind] = True
+            except NetlinkError as exc:
+                # The kernel answers ENOENT for a qdisc kind it does not know.
+                why[kind] = (
+                    f"the kernel does not know the {kind} qdisc (module sch_{kind} not built "
+                    "or not loadable)"
+                    if exc.code == errno.ENOENT
+                    else describe(exc, f"a {kind} qdisc")
+                )
+            except Exception as exc:
+                why[kind] = describe(exc, f"a {kind} qdisc")
+        try:
+            _nft(
+                name,
+                f"table bridge {PROBE_TABLE} {{\n chain f {{\n type filter hook forward "
+                "priority 0; policy accept;\n }\n}\n",
+            )
+            found["nft_bridge"] = True
+            _nft(name, f"add rule bridge {PROBE_TABLE} f numgen random mod 100 < 50 drop")
+            found["numgen"] = True
+        except Exception as exc:
+            key = "numgen" if found.get("nft_bridge") else "nft_bridge"
+            why[key] = describe(
+                exc, "an nftables " + ("numgen rule" if key == "numgen" else "bridge table")
+            )
+    finally:
+        ipr.close()
+        if name in netns.listnetns():
+            netns.remove(name)
+    try:
+        gc_thresh3 = hostlimits.current()["gc_thresh3"]
+    except NetlabError as exc:
+        gc_thresh3 = 0
+        why["arp"] = str(exc)
+    return Capabilities(
+        root=True,
+        gc_thresh3=gc_thresh3,
+        netns=found.get("netns", False),
+        veth_bridge=found.get("veth_bridge", False),
+        nft_bridge=found.get("nft_bridge", False),
+        numgen=found.get("numgen", False),
+        netem=found.get("netem", False),
+        tbf=found.get("tbf", False),
+        why=why,
+    )
+
+
+@functools.cache
+def capabilities() -> Capabilities:
+    """The probe's result, run once per process."""
+    return probe()
+
+
+def report(caps: Capabilities) -> list[tuple[str, bool, str]]:
+    """(capability, present, what follows) rows for `netlab doctor`."""
+    vm = "the VM tier (`make test-netem`) has it"
+    rows = [
+        (
+            "root",
+            caps.root,
+            "can create labs" if caps.root else "run netlab as root (sudo)",
+        ),
+        (
+            "network namespaces",
+            caps.netns,
+            "one namespace per robot" if caps.netns else "no labs on this machine",
+        ),
+        (
+            "veth + bridge",
+            caps.veth_bridge,
+            "robots share the medium bridge" if caps.veth_bridge else "no medium: no labs",
+        ),
+        (
+            "nftables bridge family",
+            caps.nft_bridge,
+            "partitions, ranges and per-pair links"
+            if caps.nft_bridge
+            else "no medium rules: no labs (apt-get install nftables; CONFIG_NF_TABLES_BRIDGE)",
+        ),
+        (
+            "nftables numgen",
+            caps.numgen,
+            "per-pair loss; link loss without netem"
+            if caps.numgen
+            else "no per-pair loss (module nft_numgen)",
+        ),
+        (
+            "tc netem (sch_netem)",
+            caps.netem,
+            "delay, jitter, loss, duplicate, reorder, corrupt, rate on robot links"
+            if caps.netem
+            else "no delay/jitter/duplicate/reorder/corrupt (they raise ShapingUnsupported); "
+            f"loss goes through nftables, rate through tbf; {vm}",
+        ),
+        (
+            "tc tbf (sch_tbf)",
+            caps.tbf,
+            "rate limits without netem" if caps.tbf else "no rate limit unless netem is present",
+        ),
+    ]
+    if caps.gc_thresh3:
+        rows.append(
+            (
+                "ARP table (host-wide)",
+                True,
+                f"gc_thresh3 {caps.gc_thresh3}: full mesh of up to "
+                f"{hostlimits.max_mesh(caps.gc_thresh3)} robots; bigger labs raise it until "
+                "the last lab goes down",
+            )
+        )
+    return rows
+
+
+def format_report(caps: Capabilities) -> str:
+    rows = report(caps)
+    width = max(len(name) for name, _, _ in rows)
+    lines = [f"{'capability'.ljust(width)}  ok   consequence"]
+    for name, ok, consequence in rows:
+        lines.append(f"{name.ljust(width)}  {'yes' if ok else 'NO ':<3}  {consequence}")
+    if caps.why:
+        lines.append("")
+        lines += [f"{key}: {reason}" for key, reason in sorted(caps.why.items())]
+    return "\n".join(lines)

@@ -1,0 +1,96 @@
+"""Thin wrappers over namespaces and commands run inside them; errors come out as KernelError."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+from pyroute2 import IPRoute, netns
+
+from netlab.errors import KernelError, kernel_errors
+
+NETNS_DIR = Path("/run/netns")
+RT_SCOPE_LINK = 253
+
+
+def list_ns(prefix: str = "") -> list[str]:
+    return sorted(ns for ns in netns.listnetns() if ns.startswith(prefix))
+
+
+def create_ns(name: str) -> IPRoute:
+    """Create namespace `name` (it must not exist) and return a netlink socket inside it."""
+    with kernel_errors(f"creating network namespace {name}"):
+        return IPRoute(netns=name, flags=os.O_CREAT | os.O_EXCL)
+
+
+def open_ns(name: str) -> IPRoute:
+    """A netlink socket inside the existing namespace `name`."""
+    if name not in netns.listnetns():
+        raise KernelError(f"network namespace {name} does not exist (was the lab taken down?)")
+    with kernel_errors(f"opening network namespace {name}"):
+        return IPRoute(netns=name, flags=0)
+
+
+def remove_ns(name: str) -> bool:
+    """Delete namespace `name`; False if it was already gone."""
+    if name not in netns.listnetns():
+        return False
+    try:
+        netns.remove(name)
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise KernelError(f"removing network namespace {name} failed: {exc.strerror}") from exc
+    return True
+
+
+def ns_inode(name: str) -> tuple[int, int] | None:
+    """(device, inode) identifying namespace `name`, or None if it does not exist."""
+    try:
+        st = os.stat(NETNS_DIR / name)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+@contextlib.contextmanager
+def inside(name: str) -> Iterator[None]:
+    """Run the body with this thread in namespace `name` (for /proc/sys/net writes)."""
+    with kernel_errors(f"entering network namespace {name}"):
+        netns.pushns(name)
+    try:
+        yield
+    finally:
+        netns.popns()
+
+
+def set_sysctl(key: str, value: str) -> None:
+    """Write a /proc/sys value in the current thread's network namespace."""
+    path = Path("/proc/sys") / key.replace(".", "/")
+    with kernel_errors(f"setting {key}"):
+        path.write_text(value)
+
+
+def ns_argv(name: str, argv: Sequence[str]) -> list[str]:
+    """`argv` run inside namespace `name` (with its own /sys, as tools expect)."""
+    if isinstance(argv, str):
+        raise TypeError("argv must be a sequence of strings, not a string")
+    return ["ip", "netns", "exec", name, *argv]
+
+
+def run_in_ns(name: str, argv: Sequence[str], doing: str, stdin: str | None = None) -> str:
+    """Run `argv` in namespace `name` to completion; its stdout, or KernelError with stderr."""
+    with kernel_errors(doing):
+        res = subprocess.run(
+            ns_argv(name, argv),
+            input=stdin,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=True,
+            stdin=None if stdin is not None else subprocess.DEVNULL,
+        )
+    return res.stdout

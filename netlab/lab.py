@@ -1,0 +1,652 @@
+"""A lab: robots in network namespaces on one medium, running the real sdfrd.
+
+    with Lab("demo", seed=1) as lab:
+        for i in range(3):
+            lab.add_robot(f"r{i + 1}", pos=(i * 5.0, 0.0))
+        lab.start_all(beacon_interval=0.5)
+        lab.partition([["r1"], ["r2", "r3"]])
+        ...
+
+Everything a lab creates is recorded in its manifest before it is created,
+and `down()` (also `netlab down NAME` from another process, after this one
+died) removes exactly that: see `netlab.cleanup`.
+
+Robot ``i`` (from 0, in order of `add_robot`) gets the address
+``10.<fleet>.<i // 250>.<i % 250 + 1>/16`` and, unless given, a MAC
+derived from the lab's seed and ``i``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from ipaddress import IPv4Interface
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from netlab import cleanup, hostlimits, kernel, manifest, naming, shaping
+from netlab.cleanup import SweepResult
+from netlab.doctor import capabilities
+from netlab.errors import (
+    DaemonError,
+    LabExistsError,
+    LabStateError,
+    NetlabError,
+    UnknownRobotError,
+    kernel_errors,
+)
+from netlab.manifest import Manifest, ProcRecord, RobotRecord
+from netlab.medium import Medium
+from netlab.mobility import MobilityModel
+from netlab.ranges import Links, Pos, RangeModel, Topology, with_link_loss
+from netlab.shaping import LinkShape
+from sdfr.client import Client
+from sdfr.errors import ApiError
+
+START_TIMEOUT = 20.0
+STOP_TIMEOUT = 10.0
+SUN_PATH_MAX = 107  # a unix socket path longer than this cannot be bound
+
+
+@dataclass(frozen=True, slots=True)
+class Robot:
+    """One robot of a lab: its namespace, its link and where its daemon keeps its files."""
+
+    name: str
+    index: int
+    ns: str
+    port: str  # its port on the medium bridge
+    mac: str
+    address: IPv4Interface
+    workdir: Path  # its daemon's state and log
+
+    @property
+    def ip(self) -> str:
+        return str(self.address.ip)
+
+    @property
+    def state_dir(self) -> Path:
+        return self.workdir / "state"
+
+    @property
+    def log(self) -> Path:
+        return self.workdir / "sdfrd.log"
+
+    @property
+    def api_socket(self) -> Path:
+        return self.state_dir / "api.sock"
+
+
+RobotRef = str | Robot
+
+
+class Lab:
+    """A fleet of namespace robots on one medium; a context manager (or `up()`/`down()`)."""
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        seed: int = 0,
+        workdir: Path | None = None,
+        fleet: int = 1,
+        range_model: RangeModel | None = None,
+    ) -> None:
+        self.name = naming.check_lab_name(name)
+        naming.address_for(fleet, 0)  # validates the fleet number
+        self.seed = seed
+        self.fleet = fleet
+        self._workdir_arg = workdir
+        self.workdir = Path()
+        self.topology = Topology(range_model)
+        self.medium = Medium(naming.air_ns(name))
+        self._robots: dict[str, Robot] = {}
+        self._macs: set[str] = set()
+        self._record: Manifest | None = None
+        self._state = "new"  # new -> up -> down (or detached)
+        self._batch = 0
+        self._shapes: dict[str, LinkShape] = {}
+        self._nft_loss: dict[str, float] = {}
+        self._daemons: dict[str, subprocess.Popen[bytes]] = {}
+        self._daemon_opts: dict[str, dict[str, Any]] = {}
+        self._procs: list[subprocess.Popen[Any]] = []
+        self._clients: dict[str, Client] = {}
+        self.setup_seconds: dict[str, float] = {}
+        self._other_labs_entries = 0
+
+    # -- life cycle ----------------------------------------------------------------------
+
+    def __enter__(self) -> Lab:
+        return self.up()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.down()
+
+    def __repr__(self) -> str:
+        return f"<Lab {self.name} {self._state}, {len(self._robots)} robots>"
+
+    @property
+    def is_up(self) -> bool:
+        return self._state == "up"
+
+    def up(self) -> Lab:
+        """Claim the name, create the medium; on any failure remove what was made and re-raise."""
+        if self._state != "new":
+            raise LabStateError(f"lab {self.name} is {self._state}; make a new Lab to start again")
+        if os.geteuid() != 0:
+            raise NetlabError("netlab needs root (namespaces, veths, nftables): run it with sudo")
+        me = os.getpid()
+        record = Manifest(self.name, self.seed, self.fleet, runner_pid=me)
+        record.runner_start = cleanup.start_time(me) or 0
+        manifest.claim(record)
+        self._record = record
+        self._state = "up"
+        try:
+            left = kernel.list_ns(naming.prefix(self.name))
+            if left:
+                raise LabExistsError(
+                    f"namespaces {', '.join(left)} of a lab {self.name!r} exist without a "
+                    f"runner; `netlab down {self.name}` removes them"
+                )
+            if self._workdir_arg is None:
+                self.workdir = Path(tempfile.mkdtemp(prefix=f"netlab-{self.name}-"))
+                record.workdir_owned = True
+            else:
+                self.workdir = Path(self._workdir_arg).absolute()
+                with kernel_errors(f"creating the workdir {self.workdir}"):
+                    self.workdir.mkdir(parents=True, exist_ok=True)
+            record.workdir = str(self.workdir)
+            self._other_labs_entries = sum(
+                hostlimits.mesh_entries(len(other.robots))
+                for other in map(manifest.load, manifest.names())
+                if other is not None and other.name != self.name
+            )
+            record.namespaces.append(self.medium.ns)
+            manifest.save(record)
+            self.medium.create()
+        except LabExistsError:
+            # The leftovers are not ours to touch: release the name, leave them for `down`.
+            manifest.remove(self.name)
+            self._state = "down"
+            raise
+        except BaseException:
+            self.down()
+            raise
+        return self
+
+    def down(self) -> SweepResult:
+        """Stop every process and remove every object of the lab; idempotent."""
+        if self._state != "up":
+            return SweepResult()
+        self._state = "down"
+        for client in self._clients.values():
+            client.close()
+        self._clients.clear()
+        self.medium.close()
+        try:
+            result = cleanup.sweep(self.name, self._record)
+        finally:
+            for proc in [*self._daemons.values(), *self._procs]:
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    proc.wait(timeout=1.0)  # reap: they were killed by the sweep
+        return result
+
+    def detach(self) -> None:
+        """Leave the lab running for `netlab down` to remove later; close our handles."""
+        self._check_up()
+        for client in self._clients.values():
+            client.close()
+        self._clients.clear()
+        self.medium.close()
+        self._state = "detached"
+
+    def _check_up(self) -> None:
+        if self._state != "up":
+            raise LabStateError(f"lab {self.name} is {self._state}, not up")
+
+    def _save(self) -> None:
+        assert self._record is not None
+        manifest.save(self._record)
+
+    # -- robots --------------------------------------------------------------------------
+
+    @property
+    def robots(self) -> dict[str, Robot]:
+        """The robots, by name, in the order they were added."""
+        return dict(self._robots)
+
+    def robot(self, ref: RobotRef) -> Robot:
+        name = ref.name if isinstance(ref, Robot) else ref
+        try:
+            return self._robots[name]
+        except KeyError:
+            raise UnknownRobotError(
+                f"lab {self.name} has no robot {name!r} (robots: {', '.join(self._robots)})"
+            ) from None
+
+    def _auto_mac(self, index: int) -> str:
+        salt = 0
+        while True:  # a hash collision inside one lab is unlikely, never silent
+            mac = naming.mac_for(self.seed + salt * 1_000_003, index)
+            if mac not in self._macs:
+                return mac
+            salt += 1
+
+    def add_robot(self, name: str, *, pos: Pos = (0.0, 0.0), mac: str | None = None) -> Robot:
+        """A namespace with eth0 on the medium, lo up and a multicast route.
+
+        `mac` defaults to one derived from the lab's seed and the robot's index; a
+        given one may repeat another robot's (to script an address collision).
+        """
+        self._check_up()
+        assert self._record is not None
+        naming.check_robot_name(name)
+        if name in self._robots:
+            raise NetlabError(f"lab {self.name} already has a robot {name!r}")
+        t0 = time.perf_counter()
+        # The kernel's ARP table is shared by all namespaces: make room for the mesh.
+        hostlimits.ensure(self._other_labs_entries + hostlimits.mesh_entries(len(self._robots) + 1))
+        index = len(self._robots)
+        mac = naming.check_mac(mac) if mac is not None else self._auto_mac(index)
+        robot = Robot(
+            name=name,
+            index=index,
+            ns=naming.robot_ns(self.name, name),
+            port=naming.port(name),
+            mac=mac,
+            address=naming.address_for(self.fleet, index),
+            workdir=self.workdir / name,
+        )
+        self.topology.add(name, pos)  # validates pos before anything is created
+        self._robots[name] = robot
+        self._macs.add(mac)
+        self._record.namespaces.append(robot.ns)
+        self._record.robots[name] = RobotRecord(
+            robot.index, robot.ns, robot.port, robot.mac, str(robot.address)
+        )
+        self._save()
+        try:
+            self._plumb(robot)
+        except BaseException:
+            # Leave the lab as it was: no half-made robot. Its veth goes with its namespace.
+            with contextlib.suppress(NetlabError):
+                kernel.remove_ns(robot.ns)
+            del self._robots[name]
+            self.topology.positions.pop(name, None)
+            if mac not in (r.mac for r in self._robots.values()):
+                self._macs.discard(mac)
+            self._record.namespaces.remove(robot.ns)
+            del self._record.robots[name]
+            self._save()
+            raise
+        self._changed()
+        self.setup_seconds[name] = time.perf_counter() - t0
+        return robot
+
+    def _plumb(self, robot: Robot) -> None:
+        ipr = kernel.create_ns(robot.ns)
+        try:
+            with kernel.inside(robot.ns):
+                # Before eth0 exists, so that it inherits the default: IPv4 only.
+                kernel.set_sysctl("net.ipv6.conf.all.disable_ipv6", "1")
+                kernel.set_sysctl("net.ipv6.conf.default.disable_ipv6", "1")
+            self.medium.attach(robot.ns, robot.port, robot.mac)
+            with kernel_errors(f"configuring eth0 of robot {robot.name}"):
+                ipr.link("set", index=ipr.link_lookup(ifname="lo")[0], state="up")
+                eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
+                prefixlen = robot.address.network.prefixlen
+                ipr.addr("add", index=eth, address=robot.ip, prefixlen=prefixlen)
+                ipr.link("set", index=eth, state="up")
+                # Without a default route a namespace cannot send or join multicast.
+                ipr.route("add", dst="224.0.0.0/4", oif=eth, scope=kernel.RT_SCOPE_LINK)
+        finally:
+            ipr.close()
+
+    def add_robots(
+        self, names: Iterable[str], positions: Mapping[str, Pos] | None = None
+    ) -> list[Robot]:
+        """Several robots, with the medium rules loaded once at the end."""
+        with self.batch():
+            return [self.add_robot(n, pos=(positions or {}).get(n, (0.0, 0.0))) for n in names]
+
+    # -- the medium ----------------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[None]:
+        """Apply every medium change made in the body at once, at its end."""
+        self._batch += 1
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            self._batch -= 1
+            if self._batch == 0 and self._state == "up":
+                if ok:
+                    self._apply_medium()
+                else:
+                    with contextlib.suppress(NetlabError):
+                        self._apply_medium()
+
+    def _changed(self) -> None:
+        if self._batch == 0:
+            self._apply_medium()
+
+    def _apply_medium(self) -> None:
+        links = with_link_loss(self.topology.links(), self._nft_loss)
+        self.medium.load(links, {r.name: r.port for r in self._robots.values()})
+
+    def links(self) -> Links:
+        """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
+
+        Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
+        """
+        link_loss = {name: shape.loss for name, shape in self._shapes.items()}
+        return with_link_loss(self.topology.links(), link_loss)
+
+    def neighbours(self, ref: RobotRef) -> set[str]:
+        """The robots `ref` hears now (ground truth)."""
+        name = self.robot(ref).name
+        return {a for (a, b) in self.links() if b == name}
+
+    def positions(self) -> dict[str, Pos]:
+        return dict(self.topology.positions)
+
+    def move(self, ref: RobotRef, pos: Pos) -> None:
+        self._check_up()
+        self.topology.move(self.robot(ref).name, pos)
+        self._changed()
+
+    def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
+        """Cut every link between `groups` (robots in none form one more group)."""
+        self._check_up()
+        self.topology.partition([[self.robot(r).name for r in g] for g in groups])
+        self._changed()
+
+    def merge(self) -> None:
+        """End the partition."""
+        self._check_up()
+        self.topology.merge()
+        self._changed()
+
+    def set_pair_quality(
+        self, a: RobotRef, b: RobotRef, *, loss: float | None, both: bool = True
+    ) -> None:
+        """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
+        self._check_up()
+        self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
+        self._changed()
+
+    def run_mobility(
+        self,
+        model: MobilityModel,
+        duration: float,
+        step: float = 0.5,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> list[tuple[float, Links]]:
+        """Move the model's robots every `step` seconds for `duration`; the links at each step."""
+        self._check_up()
+        if step <= 0 or duration < 0:
+            raise ValueError(f"need step > 0 and duration >= 0, got {step}, {duration}")
+        for name in model.robots:
+            self.robot(name)
+        timeline: list[tuple[float, Links]] = []
+        t0 = clock()
+        k = 0
+        while k * step <= duration + 1e-9:
+            t = k * step
+            with self.batch():
+                for name, pos in model.positions_at(t).items():
+                    self.topology.move(name, pos)
+            timeline.append((t, self.links()))
+            k += 1
+            wait = t0 + k * step - clock()
+            if wait > 0 and k * step <= duration + 1e-9:
+                sleep(wait)
+        return timeline
+
+    # -- shaping -------------------------------------------------------------------------
+
+    def shape(self, ref: RobotRef, **params: Any) -> LinkShape:
+        """Shape the robot's link (both directions); no parameters removes all shaping.
+
+        delay/jitter in ms, loss/duplicate/reorder/corrupt in %, rate in bit/s or
+        '1mbit'. Raises ShapingUnsupported, before changing anything, for what this
+        kernel cannot do.
+        """
+        self._check_up()
+        robot = self.robot(ref)
+        shape = LinkShape.of(**params)
+        plan = shaping.plan(shape, capabilities())
+        ipr = kernel.open_ns(robot.ns)
+        try:
+            eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
+            shaping.apply(ipr, eth, plan, f"eth0 of {robot.name}")
+        finally:
+            ipr.close()
+        shaping.apply(
+            self.medium.ipr, self.medium.ifindex(robot.port), plan, f"the air port of {robot.name}"
+        )
+        self._shapes[robot.name] = shape
+        if plan.nft_loss:
+            self._nft_loss[robot.name] = plan.nft_loss
+        else:
+            self._nft_loss.pop(robot.name, None)
+        self._changed()
+        return shape
+
+    def shape_of(self, ref: RobotRef) -> LinkShape:
+        return self._shapes.get(self.robot(ref).name, LinkShape())
+
+    # -- processes -----------------------------------------------------------------------
+
+    def _record_proc(
+        self, robot: Robot, proc: subprocess.Popen[Any], role: str, argv: Sequence[str]
+    ) -> None:
+        assert self._record is not None
+        self._record.processes = [p for p in self._record.processes if cleanup.running(p.pid)]
+        self._record.processes.append(
+            ProcRecord(proc.pid, cleanup.start_time(proc.pid) or 0, robot.name, role, list(argv))
+        )
+        self._save()
+
+    def popen(self, ref: RobotRef, argv: Sequence[str], **kw: Any) -> subprocess.Popen[Any]:
+        """Start `argv` inside the robot, in its own session; stopped when the lab goes down.
+
+        Keyword arguments go to subprocess.Popen; stdin defaults to /dev/null.
+        """
+        self._check_up()
+        robot = self.robot(ref)
+        if "process_group" in kw or kw.get("start_new_session", True) is not True:
+            raise ValueError("lab processes always run in a session of their own")
+        kw.setdefault("stdin", subprocess.DEVNULL)
+        kw["start_new_session"] = True  # one process group per process: stop/kill reach all of it
+        with kernel_errors(f"starting {argv[0] if argv else argv!r} in robot {robot.name}"):
+            proc: subprocess.Popen[Any] = subprocess.Popen(kernel.ns_argv(robot.ns, argv), **kw)
+        self._procs.append(proc)
+        self._record_proc(robot, proc, "process", argv)
+        return proc
+
+    def exec(
+        self, ref: RobotRef, argv: Sequence[str], **kw: Any
+    ) -> subprocess.CompletedProcess[Any]:
+        """Run `argv` inside the robot to completion (output captured as text, 30 s timeout)."""
+        self._check_up()
+        robot = self.robot(ref)
+        kw.setdefault("stdin", subprocess.DEVNULL)
+        if "stdout" not in kw and "stderr" not in kw:
+            kw.setdefault("capture_output", True)
+        kw.setdefault("text", True)
+        kw.setdefault("timeout", 30)
+        return subprocess.run(kernel.ns_argv(robot.ns, argv), **kw)
+
+    def sdfrd_argv(self, ref: RobotRef, **options: Any) -> list[str]:
+        """The sdfrd command line for the robot: `options` are its flags (beacon_interval=0.5)."""
+        robot = self.robot(ref)
+        opts: dict[str, Any] = {
+            "iface": naming.ROBOT_IFACE,
+            "fleet": self.fleet,
+            "robot_id": robot.name,
+            "state_dir": robot.state_dir,
+        }
+        opts.update(options)
+        argv = [sys.executable, "-m", "sdfr.daemon.supervisor"]
+        for key, value in opts.items():
+            if value is not None:
+                argv += ["--" + key.replace("_", "-"), str(value)]
+        return argv
+
+    def start(self, ref: RobotRef, *, timeout: float = START_TIMEOUT, **options: Any) -> None:
+        """Run sdfrd in the robot and wait until its discovery layer is up."""
+        robot = self.robot(ref)
+        self._spawn(robot, options)
+        self.wait_healthy(robot, timeout)
+
+    def start_all(
+        self, refs: Iterable[RobotRef] | None = None, *, timeout: float = 60.0, **options: Any
+    ) -> None:
+        """Start sdfrd on several robots (all by default) at once, then wait for all."""
+        robots = [self.robot(r) for r in (refs if refs is not None else list(self._robots))]
+        for robot in robots:
+            self._spawn(robot, options)
+        deadline = time.monotonic() + timeout
+        for robot in robots:
+            self.wait_healthy(robot, max(0.1, deadline - time.monotonic()))
+
+    def _spawn(self, robot: Robot, options: dict[str, Any]) -> None:
+        self._check_up()
+        if self.alive(robot):
+            raise LabStateError(f"sdfrd already runs on robot {robot.name}; stop it first")
+        if len(str(robot.api_socket)) > SUN_PATH_MAX:
+            raise NetlabError(
+                f"{robot.api_socket} is longer than a unix socket path may be "
+                f"({SUN_PATH_MAX} bytes): give the lab a shorter workdir"
+            )
+        with kernel_errors(f"creating {robot.state_dir}"):
+            robot.state_dir.mkdir(parents=True, exist_ok=True)
+        argv = self.sdfrd_argv(robot, **options)
+        with open(robot.log, "ab") as log:
+            log.write(f"--- netlab: {' '.join(argv)}\n".encode())
+            log.flush()
+            with kernel_errors(f"starting sdfrd in robot {robot.name}"):
+                proc = subprocess.Popen(
+                    kernel.ns_argv(robot.ns, argv),
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,
+                )
+        self._daemons[robot.name] = proc
+        self._daemon_opts[robot.name] = dict(options)
+        self._record_proc(robot, proc, "sdfrd", argv)
+
+    def wait_healthy(self, ref: RobotRef, timeout: float = START_TIMEOUT) -> None:
+        """Wait until the robot's sdfrd reports discovery up; DaemonError (and stop it) if not."""
+        robot = self.robot(ref)
+        proc = self._daemons.get(robot.name)
+        if proc is None:
+            raise LabStateError(f"sdfrd was not started on robot {robot.name}")
+        deadline = time.monotonic() + timeout
+        last = "no answer yet"
+        while True:
+            code = proc.poll()
+            if code is not None:
+                raise DaemonError(
+                    f"sdfrd on robot {robot.name} exited with {_status(code)} before it was "
+                    f"healthy; {robot.log} ends with:\n{self.log_tail(robot)}"
+                )
+            if robot.api_socket.exists():
+                try:
+                    health = self.client(robot).health()
+                    if health.get("discovery") == "up":
+                        return
+                    last = f"health {health}"
+                except ApiError as exc:
+                    last = str(exc)
+            if time.monotonic() > deadline:
+                self.kill(robot)
+                raise DaemonError(
+                    f"sdfrd on robot {robot.name} was not healthy within {timeout:.1f} s "
+                    f"({last}); killed it. {robot.log} ends with:\n{self.log_tail(robot)}"
+                )
+            time.sleep(0.02)
+
+    def alive(self, ref: RobotRef) -> bool:
+        proc = self._daemons.get(self.robot(ref).name)
+        return proc is not None and proc.poll() is None
+
+    def stop(self, ref: RobotRef, timeout: float = STOP_TIMEOUT) -> int:
+        """SIGTERM: a graceful stop (sdfrd says Byebye); its exit status."""
+        robot = self.robot(ref)
+        proc = self._running_daemon(robot)
+        self._drop_client(robot)
+        cleanup.signal_process(proc.pid, signal.SIGTERM)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            cleanup.signal_process(proc.pid, signal.SIGKILL)
+            proc.wait()
+            raise DaemonError(
+                f"sdfrd on robot {robot.name} did not stop within {timeout} s of SIGTERM; "
+                f"killed it. {robot.log} ends with:\n{self.log_tail(robot)}"
+            ) from None
+
+    def kill(self, ref: RobotRef) -> None:
+        """SIGKILL to the daemon's whole process group: a silent departure, no Byebye."""
+        robot = self.robot(ref)
+        proc = self._running_daemon(robot)
+        self._drop_client(robot)
+        cleanup.signal_process(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+    def restart(self, ref: RobotRef, *, timeout: float = START_TIMEOUT, **options: Any) -> None:
+        """Stop (gracefully, if running) and start again; `options` update the last ones."""
+        robot = self.robot(ref)
+        if self.alive(robot):
+            self.stop(robot)
+        opts = {**self._daemon_opts.get(robot.name, {}), **options}
+        self.start(robot, timeout=timeout, **opts)
+
+    def _running_daemon(self, robot: Robot) -> subprocess.Popen[bytes]:
+        proc = self._daemons.get(robot.name)
+        if proc is None or proc.poll() is not None:
+            raise LabStateError(f"sdfrd is not running on robot {robot.name}")
+        return proc
+
+    def client(self, ref: RobotRef) -> Client:
+        """A client of the robot's sdfrd over its unix socket (one per robot, reused)."""
+        robot = self.robot(ref)
+        if robot.name not in self._clients:
+            self._clients[robot.name] = Client(unix_socket=robot.api_socket, timeout=2.0)
+        return self._clients[robot.name]
+
+    def _drop_client(self, robot: Robot) -> None:
+        client = self._clients.pop(robot.name, None)
+        if client is not None:
+            client.close()
+
+    def log_tail(self, ref: RobotRef, lines: int = 20) -> str:
+        try:
+            text = self.robot(ref).log.read_text(errors="replace")
+        except OSError:
+            return "(no log)"
+        return "\n".join(text.splitlines()[-lines:])
+
+
+def _status(code: int) -> str:
+    return f"signal {-code}" if code < 0 else f"status {code}"

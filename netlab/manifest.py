@@ -1,0 +1,147 @@
+"""The record of what a lab created: ``/run/netlab/<lab>.json``.
+
+Written when the lab comes up (created exclusively: that is how a lab
+claims its name), rewritten atomically as robots and processes are added,
+and removed when the lab is taken down. `netlab down` reads it to sweep a
+lab whose runner died. /run is a tmpfs, so a reboot (which also clears
+every namespace) clears the manifests too.
+
+``NETLAB_RUN_DIR`` overrides the directory (unit tests without root).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from netlab.errors import KernelError, LabExistsError, NetlabError, describe, kernel_errors
+
+VERSION = 1
+
+
+def run_dir() -> Path:
+    return Path(os.environ.get("NETLAB_RUN_DIR", "/run/netlab"))
+
+
+def path_of(name: str) -> Path:
+    return run_dir() / f"{name}.json"
+
+
+@dataclass(slots=True)
+class RobotRecord:
+    index: int
+    ns: str
+    port: str
+    mac: str
+    address: str  # with prefix length, e.g. 10.1.0.1/16
+
+
+@dataclass(slots=True)
+class ProcRecord:
+    """A process the lab started; `start` (clock ticks since boot) tells it from a pid reuse."""
+
+    pid: int
+    start: int
+    robot: str
+    role: str  # "sdfrd" or "process"
+    argv: list[str]
+
+
+@dataclass(slots=True)
+class Manifest:
+    name: str
+    seed: int = 0
+    fleet: int = 1
+    workdir: str = ""
+    workdir_owned: bool = False
+    runner_pid: int = 0
+    runner_start: int = 0
+    created: float = field(default_factory=time.time)
+    namespaces: list[str] = field(default_factory=list)
+    robots: dict[str, RobotRecord] = field(default_factory=dict)
+    processes: list[ProcRecord] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"version": VERSION, **asdict(self)}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Manifest:
+        try:
+            return cls(
+                name=str(data["name"]),
+                seed=int(data.get("seed", 0)),
+                fleet=int(data.get("fleet", 1)),
+                workdir=str(data.get("workdir", "")),
+                workdir_owned=bool(data.get("workdir_owned", False)),
+                runner_pid=int(data.get("runner_pid", 0)),
+                runner_start=int(data.get("runner_start", 0)),
+                created=float(data.get("created", 0.0)),
+                namespaces=[str(n) for n in data.get("namespaces", [])],
+                robots={str(k): RobotRecord(**v) for k, v in dict(data.get("robots", {})).items()},
+                processes=[ProcRecord(**p) for p in data.get("processes", [])],
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise NetlabError(f"unreadable lab manifest: {exc!r}") from None
+
+
+def claim(manifest: Manifest) -> Path:
+    """Create the manifest, or raise LabExistsError if a lab of that name is up."""
+    path = path_of(manifest.name)
+    with kernel_errors(f"creating {run_dir()}"):
+        run_dir().mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        raise LabExistsError(
+            f"lab {manifest.name!r} is already up (manifest {path}); `netlab status "
+            f"{manifest.name}` shows it, `netlab down {manifest.name}` removes it"
+        ) from None
+    except OSError as exc:
+        raise KernelError(describe(exc, f"creating {path}"), exc.errno) from exc
+    with os.fdopen(fd, "w") as f:
+        json.dump(manifest.to_json(), f, indent=1)
+    return path
+
+
+def save(manifest: Manifest) -> None:
+    """Replace the manifest atomically (a reader never sees half a file)."""
+    path = path_of(manifest.name)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with kernel_errors(f"writing {path}"):
+        tmp.write_text(json.dumps(manifest.to_json(), indent=1))
+        tmp.replace(path)
+
+
+def load(name: str) -> Manifest | None:
+    """The manifest of lab `name`, or None if there is none."""
+    try:
+        text = path_of(name).read_text()
+    except FileNotFoundError:
+        return None
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise NetlabError(f"lab manifest {path_of(name)} is not JSON ({exc}); remove it") from None
+    if not isinstance(data, dict):
+        raise NetlabError(f"lab manifest {path_of(name)} is not a JSON object; remove it")
+    return Manifest.from_json(data)
+
+
+def remove(name: str) -> bool:
+    try:
+        path_of(name).unlink()
+    except FileNotFoundError:
+        return False
+    return True
+
+
+def names() -> list[str]:
+    """Names of the labs that have a manifest."""
+    with contextlib.suppress(FileNotFoundError):
+        return sorted(p.stem for p in run_dir().glob("*.json") if not p.name.startswith("."))
+    return []

@@ -1,0 +1,491 @@
+"""A run's report: ``report.json`` (figures) and PNG plots, written into the run's folder.
+
+`write_report(run_dir, records=...)` takes the records of the run's captures
+(`netlab.analysis.read_run`) and, when the scenario sampled them, connectivity and
+neighbour-table agreement over time.  All times are UNIX seconds (``time.time()``), the clock
+of the pcaps; plots show seconds since the start of the run.
+
+Plots (matplotlib, Agg, no pyplot state):
+
+* ``bytes_per_robot.png``: kilobytes each robot sent (TX) and received (RX), as whole frames
+  and as UDP payload;
+* ``datagrams_per_type.png``: datagrams per second sent on the air, per message type;
+* ``connectivity.png`` (with connectivity samples): linked pairs on the medium and reachable
+  peers per robot over time;
+* ``agreement.png`` (with agreement samples): how far neighbour tables agree with the
+  medium's true connectivity over time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from netlab import analysis
+from netlab.analysis import Record
+from netlab.capture import CaptureInfo
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+__all__ = [
+    "AGREEMENT_TARGET",
+    "REPORT_JSON",
+    "AgreementSample",
+    "ConnectivitySample",
+    "write_report",
+]
+
+REPORT_JSON = "report.json"
+SCHEMA = "netlab-report/1"
+#: Share of the time neighbour lists must agree with the truth (issue: mobility check).
+AGREEMENT_TARGET = 0.95
+#: Bin widths for time series: the smallest giving at most this many bins is used.
+_MAX_BINS = 60
+_STEPS = (0.5, 1.0, 2.0, 5.0, 10.0, 15.0, 30.0, 60.0, 120.0, 300.0, 600.0)
+_DPI = 110
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectivitySample:
+    """The fleet's connectivity at one moment.
+
+    linked_pairs: unordered robot pairs the medium links (ground truth);
+    reachable: per robot, how many peers its neighbour list says are reachable;
+    reachable_pairs: unordered pairs in which both robots list each other (optional).
+    """
+
+    time: float
+    linked_pairs: int
+    reachable: Mapping[str, int] = field(default_factory=dict)
+    reachable_pairs: int | None = None
+
+    @classmethod
+    def coerce(cls, obj: ConnectivitySample | Mapping[str, Any]) -> ConnectivitySample:
+        if isinstance(obj, ConnectivitySample):
+            return obj
+        rp = obj.get("reachable_pairs")
+        return cls(
+            time=float(obj["time"] if "time" in obj else obj["t"]),
+            linked_pairs=int(obj["linked_pairs"]),
+            reachable={str(k): int(v) for k, v in dict(obj.get("reachable") or {}).items()},
+            reachable_pairs=None if rp is None else int(rp),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "time": self.time,
+            "linked_pairs": self.linked_pairs,
+            "reachable": dict(self.reachable),
+        }
+        if self.reachable_pairs is not None:
+            out["reachable_pairs"] = self.reachable_pairs
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class AgreementSample:
+    """Neighbour tables against the medium's truth at one moment.
+
+    agreement: 0..1, share of ordered (robot, peer) pairs on which they agree (see
+    `netlab.analysis.neighbour_agreement`); per_robot: the same per robot (optional).
+    """
+
+    time: float
+    agreement: float
+    per_robot: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def coerce(cls, obj: AgreementSample | Mapping[str, Any]) -> AgreementSample:
+        if isinstance(obj, AgreementSample):
+            return obj
+        value = float(obj["agreement"])
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"agreement must be within 0..1, not {value}")
+        return cls(
+            time=float(obj["time"] if "time" in obj else obj["t"]),
+            agreement=value,
+            per_robot={str(k): float(v) for k, v in dict(obj.get("per_robot") or {}).items()},
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"time": self.time, "agreement": self.agreement}
+        if self.per_robot:
+            out["per_robot"] = dict(self.per_robot)
+        return out
+
+
+def write_report(
+    run_dir: Path,
+    *,
+    records: Iterable[Record] | None,
+    connectivity_samples: Sequence[ConnectivitySample | Mapping[str, Any]] | None = None,
+    agreement_samples: Sequence[AgreementSample | Mapping[str, Any]] | None = None,
+    meta: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write ``report.json`` and the plots into `run_dir`; return what ``report.json`` holds.
+
+    `records=None` reads every ``*.pcap`` in `run_dir`.  `meta` (JSON-serialisable) is copied
+    into the report; its ``start``/``end`` (UNIX seconds) or ``duration_s`` set the run's
+    window.  Otherwise the window is the time the captures in `run_dir` ran (their ``.json``
+    files), else the span of the records and samples.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    recs = analysis.read_run(run_dir) if records is None else sorted(records, key=_time)
+    conn = [ConnectivitySample.coerce(s) for s in connectivity_samples or ()]
+    agree = [AgreementSample.coerce(s) for s in agreement_samples or ()]
+    meta = dict(meta or {})
+    infos = analysis.capture_infos(run_dir)
+    start, end = _window(recs, conn, agree, meta, infos)
+    duration = end - start
+
+    report: dict[str, Any] = {
+        "schema": SCHEMA,
+        "meta": meta,
+        "window": {"start": start, "end": end, "duration_s": duration},
+        "captures": _captures(recs, infos),
+        "traffic": analysis.paper_measure(recs, duration=duration or None),
+        "per_type": {k: v.to_json() for k, v in analysis.per_type(recs).items()},
+        "rejects": analysis.rejects(recs),
+        "updates": analysis.count_updates(recs),
+        "arp": analysis.arp_counts(recs).to_json(),
+        "plots": {},
+    }
+    if conn:
+        report["connectivity"] = _connectivity_summary(conn)
+    if agree:
+        report["agreement"] = _agreement_summary(agree)
+
+    plots: dict[str, str] = report["plots"]
+    plots["bytes_per_robot"] = _save(
+        _plot_bytes(report["traffic"], duration), run_dir / "bytes_per_robot.png"
+    )
+    plots["datagrams_per_type"] = _save(
+        _plot_types(recs, start, end), run_dir / "datagrams_per_type.png"
+    )
+    if conn:
+        plots["connectivity"] = _save(
+            _plot_connectivity(conn, start, end), run_dir / "connectivity.png"
+        )
+    if agree:
+        plots["agreement"] = _save(_plot_agreement(agree, start), run_dir / "agreement.png")
+
+    text = json.dumps(report, indent=2, sort_keys=False, default=_json_default) + "\n"
+    tmp = run_dir / (REPORT_JSON + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(run_dir / REPORT_JSON)
+    result: dict[str, Any] = json.loads(text)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures
+
+
+def _time(rec: Record) -> float:
+    return rec.time
+
+
+def _window(
+    recs: Sequence[Record],
+    conn: Sequence[ConnectivitySample],
+    agree: Sequence[AgreementSample],
+    meta: Mapping[str, Any],
+    infos: Mapping[str, CaptureInfo],
+) -> tuple[float, float]:
+    times = [r.time for r in recs] + [s.time for s in conn] + [s.time for s in agree]
+    began = [i.started for i in infos.values() if i.started is not None]
+    ended = [i.stopped for i in infos.values() if i.stopped is not None]
+    start = float(meta["start"]) if "start" in meta else min(began or times, default=0.0)
+    if "end" in meta:
+        end = float(meta["end"])
+    elif "duration_s" in meta:
+        end = start + float(meta["duration_s"])
+    else:
+        end = max(ended or times, default=start)
+    return start, max(start, end)
+
+
+def _captures(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[str, Any]:
+    owners = analysis.capture_owners(recs)
+    out: dict[str, dict[str, Any]] = {}
+    for r in recs:
+        c = out.setdefault(r.capture, _capture_entry(owners.get(r.capture)))
+        c["frames"] += 1
+        if r.kind in ("sdfr", "arp"):
+            c[r.kind] += 1
+        if r.direction in ("tx", "rx"):
+            c[r.direction] += 1
+    for label, info in infos.items():
+        c = out.setdefault(label, _capture_entry(owners.get(label)))
+        c["netns"], c["iface"], c["role"] = info.netns, info.iface, info.role
+        c["tcpdump"] = asdict(info.stats)
+    for c in out.values():
+        c.setdefault("role", "robot" if c["tx"] or c["rx"] else "unknown")
+    return {k: out[k] for k in analysis.natural_order(list(out))}
+
+
+def _capture_entry(robot: str | None) -> dict[str, Any]:
+    return {"robot": robot, "frames": 0, "sdfr": 0, "arp": 0, "tx": 0, "rx": 0}
+
+
+def _connectivity_summary(conn: Sequence[ConnectivitySample]) -> dict[str, Any]:
+    linked = [s.linked_pairs for s in conn]
+    return {
+        "samples": [s.to_json() for s in conn],
+        "linked_pairs": {"min": min(linked), "max": max(linked), "mean": _mean(linked)},
+    }
+
+
+def _agreement_summary(agree: Sequence[AgreementSample]) -> dict[str, Any]:
+    values = [s.agreement for s in agree]
+    return {
+        "samples": [s.to_json() for s in agree],
+        "mean": _mean(values),
+        "min": min(values),
+        "share_full": sum(v >= 1.0 for v in values) / len(values),
+        "share_at_target": sum(v >= AGREEMENT_TARGET for v in values) / len(values),
+        "target": AGREEMENT_TARGET,
+    }
+
+
+def _mean(values: Sequence[float]) -> float:
+    return sum(values) / len(values) if values else math.nan
+
+
+def _json_default(obj: object) -> Any:
+    if hasattr(obj, "to_json"):
+        return obj.to_json()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, set | frozenset | tuple):
+        return sorted(obj, key=str)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+# ---------------------------------------------------------------------------------------------
+# Plots
+
+
+def _figure(width: float = 8.0, height: float = 4.5) -> Figure:
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
+
+
+def _save(fig: Figure, path: Path) -> str:
+    fig.savefig(path, format="png")
+    return path.name
+
+
+def _plot_bytes(traffic: Mapping[str, Any], duration: float) -> Figure:
+    robots: dict[str, Any] = traffic["robots"]
+    names = list(robots)
+    n = len(names)
+    fig = _figure(max(7.0, 1.0 + 0.45 * n), 4.8)
+    ax = fig.add_subplot()
+    title = f"SDfR traffic per robot over {duration:.1f} s ({n} robot{'s' if n != 1 else ''})"
+    ax.set_title(title)
+    if not names:
+        _empty(ax, "no SDfR datagrams captured")
+        return fig
+    xs = list(range(n))
+    width = 0.38
+    series = (
+        ("tx", -width / 2, "#1f77b4", "#aec7e8", "TX"),
+        ("rx", +width / 2, "#d62728", "#ff9896", "RX"),
+    )
+    for key, offset, dark, light, label in series:
+        frame = [robots[r][f"{key}_kB"]["frame"] for r in names]
+        payload = [robots[r][f"{key}_kB"]["payload"] for r in names]
+        pos = [x + offset for x in xs]
+        bars = ax.bar(pos, frame, width, color=light, label=f"{label}, whole Ethernet frames")
+        ax.bar(pos, payload, width * 0.6, color=dark, label=f"{label}, UDP payload")
+        if n <= 12:
+            ax.bar_label(bars, fmt="%.1f", padding=2, fontsize=8)
+    ax.set_xticks(xs, names, rotation=90 if n > 12 else 0)
+    ax.set_xlabel("robot")
+    ax.set_ylabel("kilobytes (1 kB = 1000 bytes)")
+    top = max(robots[r][f"{d}_kB"]["frame"] for r in names for d in ("tx", "rx"))
+    ax.set_ylim(0, top * 1.35 or 1.0)  # room above the bars for the legend
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8, ncols=2)
+    if duration > 0:
+        tx = [robots[r].get("per_5_min_kB", {}).get("tx_payload", 0.0) for r in names]
+        rx = [robots[r].get("per_5_min_kB", {}).get("rx_payload", 0.0) for r in names]
+        ptx, prx = analysis.PAPER_TX_KB_5MIN, analysis.PAPER_RX_KB_5MIN
+        fig.supxlabel(
+            f"UDP payload at this rate over 5 min: TX {min(tx):.0f}-{max(tx):.0f} kB, "
+            f"RX {min(rx):.0f}-{max(rx):.0f} kB per robot\n"
+            f"(the paper, 5 min with its default 10 s beacon: TX {ptx[0]}-{ptx[1]} kB, "
+            f"RX {prx[0]}-{prx[1]} kB)",
+            fontsize=8,
+            color="#444444",
+        )
+    return fig
+
+
+def _step_for(duration: float) -> float:
+    for step in _STEPS:
+        if duration / step <= _MAX_BINS:
+            return step
+    return _STEPS[-1]
+
+
+def _plot_types(recs: Sequence[Record], start: float, end: float) -> Figure:
+    step = _step_for(end - start)
+    series = analysis.per_second(recs, by="type", step=step, start=start, end=end)
+    fig = _figure(8.0, 4.5)
+    ax = fig.add_subplot()
+    ax.set_title("SDfR datagrams sent on the air, per message type")
+    if not series.values:
+        _empty(ax, "no SDfR datagrams captured")
+        return fig
+    lefts = series.times
+    # The last bin ends with the run: a rate over its real width, not a full step.
+    widths = [step] * series.bins
+    widths[-1] = min(step, max(end - start - lefts[-1], step / 100))
+    bottom = [0.0] * series.bins
+    order = sorted(series.values, key=lambda k: -sum(series.values[k]))
+    colors = _type_colors()
+    for key in order:
+        rates = [v / w for v, w in zip(series.values[key], widths, strict=True)]
+        total = int(sum(series.values[key]))
+        ax.bar(
+            lefts,
+            rates,
+            width=widths,
+            bottom=bottom,
+            align="edge",
+            color=colors.get(key),
+            edgecolor="white" if series.bins <= 60 else "none",
+            linewidth=0.5,
+            label=f"{key} ({total})",
+        )
+        bottom = [b + r for b, r in zip(bottom, rates, strict=True)]
+    ax.set_xlabel("time since start of run (s)")
+    unit = "per second" if step == 1.0 else f"per second (mean over {step:g} s bins)"
+    ax.set_ylabel(f"datagrams {unit}")
+    ax.set_xlim(0, max(lefts[-1] + widths[-1], 1e-9))
+    ax.set_ylim(0, max(bottom) * 1.15 or 1.0)
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_axisbelow(True)
+    ax.legend(
+        title="type (datagrams in all)",
+        fontsize=8,
+        title_fontsize=8,
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+    )
+    return fig
+
+
+def _type_colors() -> dict[str, str]:
+    """One fixed colour per message type, the same in every report."""
+    return {
+        "Alive": "#1f77b4",
+        "Update": "#ff7f0e",
+        "Discovery": "#2ca02c",
+        "Response": "#98df8a",
+        "Ping": "#9467bd",
+        "Ping reply": "#c5b0d5",
+        "Byebye": "#8c564b",
+        "Reject": "#d62728",
+    }
+
+
+def _plot_connectivity(conn: Sequence[ConnectivitySample], start: float, end: float) -> Figure:
+    from matplotlib.ticker import MaxNLocator
+
+    fig = _figure(8.0, 6.0)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    # A sample holds until the next one; the last until the end of the run (or one interval).
+    ts = [s.time - start for s in conn]
+    gap = (ts[-1] - ts[-2]) if len(ts) > 1 else 1.0
+    edges = [*ts, end - start if end - start > ts[-1] else ts[-1] + gap]
+    top.set_title("Connectivity over time")
+    top.stairs([s.linked_pairs for s in conn], edges, baseline=None, label="linked pairs (medium)")
+    if any(s.reachable_pairs is not None for s in conn):
+        pairs = [math.nan if s.reachable_pairs is None else s.reachable_pairs for s in conn]
+        top.stairs(pairs, edges, baseline=None, linestyle="--", label="pairs listing each other")
+    top.set_xlim(edges[0], edges[-1])
+    top.set_ylabel("robot pairs")
+    top.set_ylim(bottom=0, top=max(1, max(s.linked_pairs for s in conn)) * 1.15)
+    top.yaxis.set_major_locator(MaxNLocator(integer=True))
+    top.grid(alpha=0.3)
+    top.legend(fontsize=8, loc="best")
+
+    robots = analysis.natural_order(sorted({r for s in conn for r in s.reachable}))
+    bottom.set_title("Peers each robot lists as reachable", fontsize=10)
+    if robots:
+        # One row per robot, coloured by its count: no lines hiding each other, and it scales
+        # to a 50-robot lab.
+        grid = [[s.reachable.get(robot, math.nan) for s in conn] for robot in robots]
+        most = max(1, max((v for row in grid for v in row if v == v), default=1))
+        mesh = bottom.pcolormesh(
+            edges,
+            range(len(robots) + 1),
+            grid,
+            cmap="viridis",
+            vmin=0,
+            vmax=most,
+            shading="flat",
+        )
+        # Spanning both panels keeps their time axes aligned; drawn level with the bottom one.
+        bar = fig.colorbar(mesh, ax=[top, bottom], pad=0.01, shrink=0.48, anchor=(0.0, 0.0))
+        bar.set_label("reachable peers")
+        bar.ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        bottom.set_yticks([i + 0.5 for i in range(len(robots))], robots)
+        bottom.invert_yaxis()
+        if len(robots) > 20:
+            bottom.tick_params(axis="y", labelsize=6)
+    else:
+        _empty(bottom, "no per-robot samples")
+    bottom.set_xlabel("time since start of run (s)")
+    bottom.set_ylabel("robot")
+    return fig
+
+
+def _plot_agreement(agree: Sequence[AgreementSample], start: float) -> Figure:
+    fig = _figure(8.0, 4.5)
+    ax = fig.add_subplot()
+    ts = [s.time - start for s in agree]
+    values = [100.0 * s.agreement for s in agree]
+    mean = _mean(values)
+    ax.set_title(f"Neighbour tables vs. true connectivity (mean agreement {mean:.1f} %)")
+    robots = analysis.natural_order(sorted({r for s in agree for r in s.per_robot}))
+    if 0 < len(robots) <= 10:
+        for robot in robots:
+            ys = [100.0 * s.per_robot.get(robot, math.nan) for s in agree]
+            ax.plot(
+                ts, ys, linewidth=0.8, alpha=0.6, marker="." if len(ts) < 60 else "", label=robot
+            )
+    ax.plot(
+        ts, values, color="black", linewidth=2.0, marker="." if len(ts) < 60 else "", label="fleet"
+    )
+    ax.axhline(
+        100 * AGREEMENT_TARGET,
+        color="#d62728",
+        linestyle="--",
+        linewidth=1.0,
+        label=f"{100 * AGREEMENT_TARGET:.0f} % target",
+    )
+    ax.set_xlabel("time since start of run (s)")
+    ax.set_ylabel("pairs in agreement (%)")
+    low = min([*values, 100 * AGREEMENT_TARGET])
+    ax.set_ylim(max(0.0, math.floor(low / 10) * 10 - 5), 101)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right", ncols=min(4, len(robots) + 2))
+    return fig
+
+
+def _empty(ax: Axes, text: str) -> None:
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="#666666")
+    ax.set_xticks([])
+    ax.set_yticks([])
