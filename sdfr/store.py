@@ -122,9 +122,10 @@ class Store:
             "INSERT OR IGNORE INTO meta(key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),)
         )
         self.status_path = state_dir / "discovery-status.json"
-        # Parsed service sets by (robot, boot, version, digest): a set never changes under
-        # one key, so a reload after an indicator update parses nothing again.
-        self._parsed: dict[tuple[str, int, int, str], tuple[Service, ...]] = {}
+        # Parsed service sets by their stored JSON text: a reload after an indicator update
+        # parses nothing again. (Not by version: a peer is saved with no services while its
+        # announced set is still being fetched, then again with them, under one version.)
+        self._parsed: dict[str, tuple[Service, ...]] = {}
 
     def close(self) -> None:
         self._db.close()
@@ -229,14 +230,14 @@ class Store:
             "SELECT robot_id, address, location, boot_id, version, digest, reachable, first_seen, "
             "last_seen, indicator, rtt_ms, pings, services FROM peers ORDER BY robot_id"
         ).fetchall()
-        parsed: dict[tuple[str, int, int, str], tuple[Service, ...]] = {}
+        parsed: dict[str, tuple[Service, ...]] = {}
         out = []
         for r in rows:
-            key = (r[0], r[3], r[4], r[5])
-            services = self._parsed.get(key)
+            text: str = r[12]
+            services = self._parsed.get(text)
             if services is None:
-                services = tuple(Service.from_json(s) for s in json.loads(r[12]))
-            parsed[key] = services
+                services = tuple(Service.from_json(s) for s in json.loads(text))
+            parsed[text] = services
             out.append(
                 PeerRecord(
                     robot_id=r[0],

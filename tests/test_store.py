@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -102,3 +103,28 @@ def test_ids_with_a_trailing_newline_are_refused() -> None:
         check_robot_id("abc\n")
     with pytest.raises(ValidationError):
         Service.from_json({"id": "a\n", "name": "x", "type": "t"})
+
+
+def test_a_peer_saved_again_under_one_version_shows_its_new_services(tmp_path: Path) -> None:
+    """A peer is stored before its set is fetched, then with it: same boot and version."""
+    writer, reader = Store(tmp_path), Store(tmp_path)
+    svcs = (Service("m", "map", "slam.map"),)
+    empty = PeerRecord(
+        "r1",
+        "10.1.0.1",
+        "http://10.1.0.1:8701/",
+        1,
+        1,
+        service_digest(svcs),
+        True,
+        1.0,
+        1.0,
+        None,
+        None,
+        0,
+        (),
+    )
+    writer.save_peers([empty])
+    assert reader.load_peers()[0].services == ()
+    writer.save_peers([dataclasses.replace(empty, services=svcs)])
+    assert reader.load_peers()[0].services == svcs
