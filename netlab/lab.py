@@ -99,8 +99,14 @@ class Lab:
         workdir: Path | None = None,
         fleet: int = 1,
         range_model: RangeModel | None = None,
+        addressing: str = "manual",
     ) -> None:
         self.name = naming.check_lab_name(name)
+        if addressing not in ("manual", "auto"):
+            raise NetlabError(f"addressing: must be manual or auto, got {addressing!r}")
+        #: manual: the lab gives each robot a static address; auto: robots start without one
+        #: and sdfrd derives, probes and defends its own (`sdfrd --addressing auto`).
+        self.addressing = addressing
         naming.address_for(fleet, 0)  # validates the fleet number
         self.seed = seed
         self.fleet = fleet
@@ -307,8 +313,9 @@ class Lab:
             with kernel_errors(f"configuring eth0 of robot {robot.name}"):
                 ipr.link("set", index=ipr.link_lookup(ifname="lo")[0], state="up")
                 eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
-                prefixlen = robot.address.network.prefixlen
-                ipr.addr("add", index=eth, address=robot.ip, prefixlen=prefixlen)
+                if self.addressing == "manual":
+                    prefixlen = robot.address.network.prefixlen
+                    ipr.addr("add", index=eth, address=robot.ip, prefixlen=prefixlen)
                 ipr.link("set", index=eth, state="up")
                 # Without a default route a namespace cannot send or join multicast.
                 ipr.route("add", dst="224.0.0.0/4", oif=eth, scope=kernel.RT_SCOPE_LINK)
@@ -361,6 +368,14 @@ class Lab:
         """The robots `ref` hears now (ground truth)."""
         name = self.robot(ref).name
         return {a for (a, b) in self.links() if b == name}
+
+    def live_addresses(self, ref: RobotRef) -> list[str]:
+        """The IPv4 addresses eth0 has right now (with `addressing="auto"`, sdfrd's choice)."""
+        robot = self.robot(ref)
+        res = self.exec(robot, ["ip", "-4", "-o", "addr", "show", "dev", naming.ROBOT_IFACE])
+        if res.returncode != 0:
+            raise NetlabError(f"cannot read the addresses of robot {robot.name}: {res.stderr}")
+        return [line.split()[3].split("/")[0] for line in res.stdout.splitlines()]
 
     def positions(self) -> dict[str, Pos]:
         return dict(self.topology.positions)
@@ -503,6 +518,7 @@ class Lab:
             "fleet": self.fleet,
             "robot_id": robot.name,
             "state_dir": robot.state_dir,
+            "addressing": self.addressing,
         }
         opts.update(options)
         argv = [sys.executable, "-m", "sdfr.daemon.supervisor"]

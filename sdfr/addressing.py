@@ -102,6 +102,7 @@ class AddrConfig:
     max_conflicts: int = 10
     rate_limit_interval: float = 60.0
     defend_interval: float = 10.0
+    refresh_interval: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,6 +164,7 @@ class Addressing:
         self._sent = 0
         self._deadline = math.inf
         self._last_defend = -math.inf
+        self._last_refresh = -math.inf
         self._arp: list[ArpSend] = []
         self._actions: list[Action] = []
 
@@ -201,6 +203,15 @@ class Addressing:
         so that the other robot's ARP, and ours, settle it."""
         if self.state is State.BOUND and now - self._last_defend >= self.config.defend_interval:
             self._defend(now)
+
+    def refresh(self, now: float) -> None:
+        """New robots came into range (two groups merging, say): announce our address once,
+        at most every `refresh_interval`, so that a robot of the other group holding the
+        same address hears of it now and not whenever ARP traffic happens to reveal it."""
+        if self.state is State.BOUND and now - self._last_refresh >= self.config.refresh_interval:
+            assert self.ip is not None
+            self._last_refresh = now
+            self._arp.append(ArpSend("announce", self.ip))
 
     def handle_timer(self, now: float) -> None:
         if now < self._deadline:

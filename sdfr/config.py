@@ -42,6 +42,7 @@ class Config:
     ping_window: int = 20
     reply_delay_max: float = 0.5
     ttl: int = 1
+    addressing: str = "manual"
     log_level: str = "info"
 
     @property
@@ -82,6 +83,8 @@ class Config:
             raise ConfigError(f"reply_delay_max: must be 0-5 seconds, got {self.reply_delay_max}")
         if not 1 <= self.ttl <= 255:
             raise ConfigError(f"ttl: must be 1-255, got {self.ttl}")
+        if self.addressing not in ("manual", "auto"):
+            raise ConfigError(f"addressing: must be auto or manual, got {self.addressing!r}")
         if self.log_level not in ("debug", "info", "warning", "error"):
             raise ConfigError(
                 f"log_level: must be debug, info, warning or error, got {self.log_level!r}"
@@ -124,6 +127,9 @@ _HELP: dict[str, str] = {
     "reply_delay_max": "longest random delay before answering a Discovery, bounded by its MX "
     "(default 0.5)",
     "ttl": "multicast TTL (default 1: one radio hop)",
+    "addressing": "auto: take 10.<fleet>.x.y derived from the MAC, checked with ARP probes and "
+    "moved on conflict (set it on robots); manual: leave the interface's addresses alone "
+    "(default, so a workstation's address is never touched)",
     "log_level": "debug, info, warning or error (default info)",
 }
 

@@ -173,6 +173,8 @@ class Core:
         self.counters = Counters()
         self._out: list[Outgoing] = []
         self._dirty: set[str] = set()
+        #: How many times a peer became reachable (a merge or an arrival shows here).
+        self.arrivals = 0
         self._started = False
         self._stopped = False
         self._next_beacon = math.inf
@@ -187,6 +189,10 @@ class Core:
         self._announced: tuple[int, tuple[Service, ...]] | None = None
 
     # -- life cycle ------------------------------------------------------------------------
+
+    @property
+    def started(self) -> bool:
+        return self._started
 
     def start(self, now: float) -> None:
         """Announce ourselves and ask who is there."""
@@ -205,9 +211,19 @@ class Core:
 
     # -- inputs ----------------------------------------------------------------------------
 
-    def set_location(self, location: str) -> None:
+    def set_location(self, location: str, now: float | None = None) -> None:
+        """Our address (so LOCATION) changed; with `now`, tell the fleet at once."""
         self.location = location
         self._parts_cache = None
+        if now is not None and self._started and not self._stopped:
+            # Peers key us by robot id and take the new address from this datagram.
+            self._send(Alive(self._origin(), self.location, self.config.max_age), None)
+            # Questions asked from the old address (say, one that another robot also held)
+            # may have gone nowhere: ask again now rather than after their back-off.
+            for peer in self.peers.values():
+                if peer.fetch is not None:
+                    peer.fetch.backoff = 0.0
+                    peer.fetch.retry_at = now
 
     def set_services(self, version: int, services: Sequence[Service], now: float) -> None:
         """The local registrations changed: announce the new set (coalescing bursts)."""
@@ -521,6 +537,7 @@ class Core:
             self._dirty.add(peer.robot_id)
         if not peer.reachable:
             peer.reachable = True
+            self.arrivals += 1
             peer.pings.clear()
             peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
             self._dirty.add(peer.robot_id)

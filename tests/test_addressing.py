@@ -212,3 +212,21 @@ def test_arp_loss_still_converges() -> None:
     hosts = [net.add(f"r{i}", f"02:00:00:00:{i:02x}:{i:02x}") for i in range(1, 7)]
     net.run(5.0)
     assert len({h.machine.bound for h in hosts}) == 6
+
+
+def test_refresh_announces_once_per_interval_only_when_bound() -> None:
+    m = Addressing(
+        AddrConfig(fleet=7, mac="02:00:00:00:00:01", refresh_interval=1.0), random.Random(1)
+    )
+    m.refresh(0.0)
+    assert m.arp_to_send() == []  # not bound yet: nothing to announce
+    m.start(0.0, current=next(candidates(7, "02:00:00:00:00:01")))
+    for t in (0.0, 0.1, 0.2):
+        m.handle_timer(t)
+    assert m.state is State.BOUND
+    m.arp_to_send()
+    m.refresh(1.0)
+    m.refresh(1.5)
+    m.refresh(2.1)
+    sent = m.arp_to_send()
+    assert [s.kind for s in sent] == ["announce", "announce"]

@@ -15,10 +15,13 @@ import signal
 import socket
 import struct
 import time
+from ipaddress import IPv4Address
 from pathlib import Path
 
 from sdfr import netif
+from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import Config, from_args, split_hostport
+from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.errors import SdfrError
 from sdfr.protocol import MESSAGE_TYPES, Core, CoreConfig, PeerView
 from sdfr.store import PeerRecord, Store
@@ -88,6 +91,17 @@ class DiscoveryLayer:
         store.mark_all_unreachable()
         self.sock = open_multicast_socket(cfg, self.iface)
         self.control = self._open_control(cfg.state_dir / CONTROL_NAME)
+        self.addressing: Addressing | None = None
+        self.arp: ArpSocket | None = None
+        self.netlink: Netlink | None = None
+        if cfg.addressing == "auto":
+            mac = netif.mac(self.iface)
+            self.addressing = Addressing(AddrConfig(cfg.fleet, mac), random.Random())
+            self.arp = ArpSocket(self.iface, bytes.fromhex(mac.replace(":", "")))
+            self.netlink = Netlink(self.iface)
+        self._addr_timer: asyncio.TimerHandle | None = None
+        self._arrivals = 0
+        self._bound = asyncio.Event()
         self._timer: asyncio.TimerHandle | None = None
         self._flush_pending = False
         self._stopping = asyncio.Event()
@@ -134,10 +148,39 @@ class DiscoveryLayer:
     # -- running ---------------------------------------------------------------------------
 
     async def run(self) -> None:
-        self.loop.add_reader(self.sock.fileno(), self._on_readable)
-        self.loop.add_reader(self.control.fileno(), self._on_control)
         for sig in (signal.SIGTERM, signal.SIGINT):
             self.loop.add_signal_handler(sig, self._stopping.set)
+        self._write_status()
+        status_task = asyncio.create_task(self._periodic())
+        try:
+            await self._run()
+        finally:
+            status_task.cancel()
+
+    async def _run(self) -> None:
+        if self.addressing is not None and self.arp is not None:
+            self.loop.add_reader(self.arp.fileno(), self._on_arp)
+            current = self._current_auto_address()
+            self.addressing.start(time.monotonic(), current)
+            self._pump_addr()
+            log.info(
+                "addressing: %s %s on %s",
+                "re-announcing" if current else "probing",
+                self.addressing.ip,
+                self.iface,
+            )
+            # Discovery speaks only from an address that is ours.
+            waiter = asyncio.create_task(self._bound.wait())
+            stopper = asyncio.create_task(self._stopping.wait())
+            await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+            waiter.cancel()
+            stopper.cancel()
+            if self._stopping.is_set():
+                self._close_addressing()
+                return
+        self.loop.add_reader(self.sock.fileno(), self._on_readable)
+        self.loop.add_reader(self.control.fileno(), self._on_control)
+        self._check_address()
         self.core.start(time.monotonic())
         self._pump()
         self._write_status()
@@ -149,11 +192,9 @@ class DiscoveryLayer:
             self.address or "no address",
             self.boot_id,
         )
-        status_task = asyncio.create_task(self._periodic())
         try:
             await self._stopping.wait()
         finally:
-            status_task.cancel()
             self.core.stop(time.monotonic())
             self._pump()
             self._flush()
@@ -162,7 +203,77 @@ class DiscoveryLayer:
             self.sock.close()
             self.control.close()
             (self.cfg.state_dir / CONTROL_NAME).unlink(missing_ok=True)
+            self._close_addressing()
             log.info("discovery stopped (byebye sent)")
+
+    # -- addressing (auto mode) ------------------------------------------------------------
+
+    def _current_auto_address(self) -> IPv4Address | None:
+        """Our address still on the interface from an earlier run, if it is one of ours."""
+        assert self.addressing is not None
+        ip = netif.ipv4(self.iface)
+        if ip is None:
+            return None
+        addr = IPv4Address(ip)
+        return addr if addr in self.addressing.network else None
+
+    def _on_arp(self) -> None:
+        assert self.addressing is not None and self.arp is not None
+        now = time.monotonic()
+        for pkt in self.arp.read():
+            self.addressing.handle_arp(pkt, now)
+        self._pump_addr()
+
+    def _on_addr_timer(self) -> None:
+        self._addr_timer = None
+        assert self.addressing is not None
+        self.addressing.handle_timer(time.monotonic())
+        self._pump_addr()
+
+    def _pump_addr(self) -> None:
+        """Carry out the address machine's decisions: kernel changes, ARP frames, its timer."""
+        machine, arp, netlink = self.addressing, self.arp, self.netlink
+        if machine is None or arp is None or netlink is None:
+            return
+        for action in machine.actions():
+            if isinstance(action, Assign):
+                netlink.assign(action.ip)
+                log.info("addressing: %s is ours", action.ip)
+            elif isinstance(action, Release):
+                netlink.release(action.ip)
+                conflict = machine.conflicts[-1] if machine.conflicts else None
+                log.warning(
+                    "addressing: gave up %s to %s (lower MAC keeps it); probing %s",
+                    action.ip,
+                    conflict.other_mac if conflict else "another robot",
+                    machine.ip,
+                )
+        for pkt in machine.arp_to_send():
+            try:
+                arp.send(pkt)
+            except OSError as exc:
+                log.debug("arp send: %s", exc)
+        if machine.bound is not None:
+            self._bound.set()
+            if self.core.started:
+                self._check_address()
+        deadline = machine.next_deadline()
+        if self._addr_timer is not None and (
+            deadline is None or self._addr_timer.when() != deadline
+        ):
+            self._addr_timer.cancel()
+            self._addr_timer = None
+        if deadline is not None and self._addr_timer is None:
+            self._addr_timer = self.loop.call_at(deadline, self._on_addr_timer)
+
+    def _close_addressing(self) -> None:
+        if self._addr_timer is not None:
+            self._addr_timer.cancel()
+        if self.arp is not None:
+            self.loop.remove_reader(self.arp.fileno())
+            self.arp.close()
+        if self.netlink is not None:
+            self.netlink.close()
 
     async def _periodic(self) -> None:
         while True:
@@ -184,8 +295,15 @@ class DiscoveryLayer:
             except OSError as exc:
                 log.debug("recvfrom: %s", exc)
                 break
+            if addr[0] == self.address and self.addressing is not None:
+                # Another robot sends from our address: a conflict, typically after a merge.
+                self.addressing.suspect(now)
             self.core.receive(data, (addr[0], addr[1]), now)
+        if self.addressing is not None and self.core.arrivals != self._arrivals:
+            self._arrivals = self.core.arrivals
+            self.addressing.refresh(now)
         self._pump()
+        self._pump_addr()
 
     def _on_control(self) -> None:
         while True:
@@ -260,7 +378,9 @@ class DiscoveryLayer:
         if address != self.address:
             log.info("address of %s is now %s", self.iface, address or "none")
             self.address = address
-            self.core.set_location(self._location())
+            if address:
+                self.core.set_location(self._location(), time.monotonic())
+                self._pump()
 
     def _write_status(self) -> None:
         c = self.core.counters
@@ -278,6 +398,7 @@ class DiscoveryLayer:
                 "location": self.core.location,
                 "peers_reachable": reachable,
                 "peers_known": len(self.core.peers),
+                "addressing": self._addressing_status(),
                 "counters": {
                     "datagrams_in": {k: c.datagrams_in[k] for k in MESSAGE_TYPES},
                     "datagrams_out": {k: c.datagrams_out[k] for k in MESSAGE_TYPES},
@@ -287,6 +408,20 @@ class DiscoveryLayer:
                 },
             }
         )
+
+    def _addressing_status(self) -> dict[str, object]:
+        m = self.addressing
+        if m is None:
+            return {"mode": "manual"}
+        return {
+            "mode": "auto",
+            "state": m.state.value,
+            "address": str(m.bound) if m.bound else None,
+            "conflicts": [
+                {"ip": str(c.ip), "other_mac": c.other_mac, "kept": c.kept, "phase": c.phase}
+                for c in m.conflicts[-10:]
+            ],
+        }
 
 
 async def _amain(cfg: Config) -> None:
