@@ -4,11 +4,17 @@
     netlab down NAME
     netlab status [NAME]
     netlab exec NAME ROBOT -- CMD...
+    netlab run FILE|NAME [--runs DIR] [--quick] [--no-capture] [--no-report] [--lab NAME]
+    netlab run --list
+    netlab capture NAME ROBOT|medium --out FILE [--duration S]
+    netlab report RUN_DIR
     netlab doctor
 
 `up` leaves the lab running after the command exits; `down` removes it,
 also when the program that made it died. Exit status 0 on success, 1 when
-netlab could not do it (the message says why), 2 for a bad command line.
+netlab could not do it (the message says why) or a scenario's check failed,
+2 for a bad command line or scenario file, 3 when a scenario was skipped
+(this sdfrd lacks an option it needs).
 """
 
 from __future__ import annotations
@@ -57,6 +63,16 @@ def _metres(text: str) -> float:
     return value
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be above 0 seconds, got {text}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="netlab",
@@ -100,6 +116,44 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("name", type=_lab_name, metavar="NAME")
     ex.add_argument("robot", metavar="ROBOT")
     ex.add_argument("cmd", nargs=argparse.REMAINDER, metavar="-- CMD...")
+
+    rn = sub.add_parser(
+        "run",
+        help="run a scenario (a TOML file or a bundled one) on a new lab",
+        description="Run a scenario on a new lab, with captures, progress and a report in a "
+        "run folder. Exit status 0 when every check passed, 1 when one failed, 3 when skipped.",
+    )
+    rn.add_argument(
+        "scenario",
+        nargs="?",
+        metavar="FILE|NAME",
+        help="scenario file, or the name of a bundled scenario (--list shows them)",
+    )
+    rn.add_argument("--list", action="store_true", help="list the bundled scenarios")
+    rn.add_argument(
+        "--runs", default="runs", metavar="DIR", help="where run folders go (default runs/)"
+    )
+    rn.add_argument(
+        "--quick",
+        action="store_true",
+        help="short durations for mobility and sleep steps that have one (CI)",
+    )
+    rn.add_argument("--no-capture", action="store_true", help="no tcpdump")
+    rn.add_argument(
+        "--no-report", action="store_true", help="no report.json and plots (run.json still)"
+    )
+    rn.add_argument("--lab", type=_lab_name, metavar="NAME", help="lab name (default: made unique)")
+
+    cap = sub.add_parser("capture", help="capture a robot's (or the medium's) traffic to pcap")
+    cap.add_argument("name", type=_lab_name, metavar="NAME", help="a lab brought up with up")
+    cap.add_argument("target", metavar="ROBOT|medium")
+    cap.add_argument("--out", required=True, metavar="FILE", help="pcap to write")
+    cap.add_argument(
+        "--duration", type=_seconds, metavar="S", help="stop after S seconds (default: at Ctrl-C)"
+    )
+
+    rep = sub.add_parser("report", help="write a run folder's report.json and plots again")
+    rep.add_argument("run_dir", metavar="RUN_DIR")
 
     sub.add_parser("doctor", help="what this kernel supports, and what follows")
     return p
@@ -248,6 +302,101 @@ def cmd_exec(args: argparse.Namespace) -> int:
     os.execvp(argv[0], argv)
 
 
+EXIT_FAILED = 1
+EXIT_BAD_SCENARIO = 2
+EXIT_SKIPPED = 3
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from netlab import scenario
+
+    if args.list:
+        for name, path in scenario.bundled().items():
+            try:
+                desc = scenario.load(path).description
+            except scenario.ScenarioError as exc:
+                desc = f"(invalid: {exc})"
+            print(f"{name:18} {desc}")
+        return 0
+    if not args.scenario:
+        raise NetlabError("run: give a scenario file or a bundled scenario's name (--list)")
+    try:
+        sc = scenario.load(scenario.find(args.scenario))
+    except scenario.ScenarioError as exc:
+        print(f"netlab: {exc}", file=sys.stderr)
+        return EXIT_BAD_SCENARIO
+    result = scenario.run(
+        sc,
+        lab_name=args.lab,
+        runs=Path(args.runs),
+        quick=args.quick,
+        capture="none" if args.no_capture else None,
+        report=not args.no_report,
+    )
+    if result.status == "skipped":
+        return EXIT_SKIPPED
+    return 0 if result.ok else EXIT_FAILED
+
+
+def cmd_capture(args: argparse.Namespace) -> int:
+    from netlab.capture import Capture
+
+    record = manifest.load(args.name)
+    if record is None:
+        raise LabNotFoundError(f"no lab {args.name} is up (`netlab status` lists labs)")
+    if args.target == "medium":
+        ns, iface = naming.air_ns(args.name), naming.BRIDGE
+    else:
+        robot = record.robots.get(args.target)
+        if robot is None:
+            raise UnknownRobotError(
+                f"lab {args.name} has no robot {args.target!r} (robots: "
+                f"{', '.join(record.robots)}; or medium)"
+            )
+        ns, iface = robot.ns, naming.ROBOT_IFACE
+    out = Path(args.out)
+    cap = Capture(ns, iface, out, label=args.target)
+    cap.start()
+    until = f"for {args.duration:g} s" if args.duration else "until Ctrl-C"
+    print(f"capturing {iface} of {args.target} in lab {args.name} to {out} {until}", flush=True)
+    try:
+        if args.duration:
+            time.sleep(args.duration)
+        else:
+            while cap.running:
+                time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        stats = cap.stop()
+    print(
+        f"{out}: {stats.captured if stats.captured is not None else '?'} frames captured"
+        + (f", {stats.dropped} dropped by the kernel" if stats.dropped else "")
+    )
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from netlab.scenario import rebuild_report
+
+    run_dir = Path(args.run_dir)
+    report = rebuild_report(run_dir)
+    robots = report["traffic"]["robots"]
+    print(
+        f"{run_dir / 'report.json'}: {len(robots)} robots over "
+        f"{report['window']['duration_s']:.1f} s"
+    )
+    for robot, t in robots.items():
+        print(
+            f"  {robot:12} TX {t['tx_kB']['payload']:8.1f} kB  RX {t['rx_kB']['payload']:8.1f} kB"
+            "  (UDP payload)"
+        )
+    if "agreement" in report:
+        print(f"  agreement with the medium: mean {report['agreement']['mean']:.1%}")
+    print("plots: " + ", ".join(sorted(report["plots"].values())))
+    return 0
+
+
 def cmd_doctor(args: argparse.Namespace) -> int:
     caps = probe()
     print(format_report(caps))
@@ -259,6 +408,9 @@ COMMANDS = {
     "down": cmd_down,
     "status": cmd_status,
     "exec": cmd_exec,
+    "run": cmd_run,
+    "capture": cmd_capture,
+    "report": cmd_report,
     "doctor": cmd_doctor,
 }
 

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import signal
@@ -27,6 +28,8 @@ import pytest
 from pyroute2 import netns
 
 from tests.nsfleet import PREFIX, NsFleet, name_pid, unique_name
+
+pytest_plugins = ["tests.netlab_fixtures"]
 
 ROOT_SKIP_REASON = "needs root and network namespaces (CI runs as root)"
 
@@ -108,10 +111,20 @@ def _manifests() -> set[str]:
         return set()
 
 
+def _lab_runner(ns: str) -> int | None:
+    """The pid that runs the netlab lab owning `ns` (``nl-<lab>-...``), from its manifest."""
+    lab = ns[len(NETLAB_PREFIX) :].split("-", 1)[0]
+    try:
+        data = json.loads((NETLAB_MANIFESTS / f"{lab}.json").read_text())
+        return int(data.get("runner_pid", 0)) or None
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def _foreign(ns: str) -> bool:
-    """A namespace named by ``unique_name`` in another live process (a
+    """A namespace named by ``unique_name``, or a lab run, in another live process (a
     concurrent test session on the same machine) is not ours to judge."""
-    pid = name_pid(ns)
+    pid = _lab_runner(ns) if ns.startswith(NETLAB_PREFIX) else name_pid(ns)
     if pid is None or pid == os.getpid():
         return False
     return os.path.exists(f"/proc/{pid}")
@@ -178,6 +191,8 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         with contextlib.suppress(OSError):
             netns.remove(ns)
     for manifest in sorted(_manifests() - _baseline_manifests):
+        if _foreign(f"{NETLAB_PREFIX}{manifest.removesuffix('.json')}-air"):
+            continue
         leaks.append(
             f"netlab lab manifest {NETLAB_MANIFESTS / manifest} left behind (lab not down)"
         )

@@ -1,0 +1,140 @@
+"""pytest fixtures for netlab labs (registered from tests/conftest.py).
+
+* ``lab``: a fresh `Lab`, up, with a name unique on this machine; taken down after the test
+  even when it failed, tolerating what the test already removed (robots, namespaces, the lab
+  itself).  Teardown fails the test if anything of the lab is left.
+* ``lab_factory(**lab_kw)``: as many such labs as a test needs.
+* ``fleet``: a lab with robots r1..rN running sdfrd, set with
+  ``@pytest.mark.fleet(n=3, beacon=0.5, ...)`` (defaults: 3 robots, beacon 0.5 s; other
+  keywords go to `fleet_factory`).
+* ``fleet_factory(n=3, *, beacon=0.5, spacing=1.0, start=True, **lab_kw)``: fleets on demand.
+
+Each skips the test unless we are root (the ``root`` marker does it too).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from netlab import cleanup, kernel, manifest, naming
+from netlab.lab import Lab
+
+DEFAULT_ROBOTS = 3
+DEFAULT_BEACON = 0.5
+SKIP_REASON = "needs root and network namespaces (CI runs as root)"
+
+_counter = itertools.count()
+_B36 = "0123456789abcdefghijklmnopqrstuvwxyz"
+
+
+def _b36(n: int, width: int = 1) -> str:
+    out = ""
+    while n or len(out) < width:
+        n, rem = divmod(n, 36)
+        out = _B36[rem] + out
+    return out
+
+
+def unique_lab_name() -> str:
+    """'f' + this process (4 base-36 digits) + a counter: at most 8 characters, unique on this
+    machine while the process runs; names whose namespaces exist are skipped."""
+    taken = kernel.list_ns(naming.NS_PREFIX) if os.geteuid() == 0 else []
+    while True:
+        name = f"f{_b36(os.getpid() % 36**4, 4)}{_b36(next(_counter) % 36**3)}"
+        if not any(ns.startswith(naming.prefix(name)) for ns in taken):
+            return name
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "fleet(n=3, beacon=0.5, **kw): robots and sdfrd options of the `fleet` fixture",
+    )
+
+
+def _need_root() -> None:
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip(SKIP_REASON)
+
+
+def _take_down(lab: Lab) -> list[str]:
+    """Take `lab` down whatever state it is in; what is left of it (empty when nothing)."""
+    problems: list[str] = []
+    try:
+        lab.down()
+    except Exception as exc:  # report it, then sweep by name below
+        problems.append(f"{lab.name}: down() failed: {exc}")
+    if kernel.list_ns(naming.prefix(lab.name)) or manifest.load(lab.name) is not None:
+        try:
+            cleanup.sweep(lab.name, manifest.load(lab.name))
+        except Exception as exc:
+            problems.append(f"{lab.name}: sweep failed: {exc}")
+    left = kernel.list_ns(naming.prefix(lab.name))
+    if left:
+        problems.append(f"{lab.name}: namespaces left behind: {', '.join(left)}")
+    if manifest.load(lab.name) is not None:
+        problems.append(f"{lab.name}: manifest {manifest.path_of(lab.name)} left behind")
+    return problems
+
+
+@pytest.fixture
+def lab_factory() -> Iterator[Callable[..., Lab]]:
+    """``make(**lab_kw) -> Lab``: up, uniquely named; every one is taken down after the test."""
+    _need_root()
+    labs: list[Lab] = []
+
+    def make(**kw: Any) -> Lab:
+        lab = Lab(unique_lab_name(), **kw)
+        labs.append(lab)
+        return lab.up()
+
+    yield make
+    problems = [p for lab in reversed(labs) for p in _take_down(lab)]
+    if problems:
+        pytest.fail("lab teardown: " + "; ".join(problems))
+
+
+@pytest.fixture
+def lab(lab_factory: Callable[..., Lab]) -> Lab:
+    """A fresh lab with no robots yet."""
+    return lab_factory()
+
+
+@pytest.fixture
+def fleet_factory(lab_factory: Callable[..., Lab]) -> Callable[..., Lab]:
+    """``make(n=3, *, beacon=0.5, spacing=1.0, start=True, options=None, **lab_kw) -> Lab``:
+    robots r1..rn standing `spacing` metres apart on a line, running sdfrd (unless not
+    `start`) with that beacon and more sdfrd `options`."""
+
+    def make(
+        n: int = DEFAULT_ROBOTS,
+        *,
+        beacon: float = DEFAULT_BEACON,
+        spacing: float = 1.0,
+        start: bool = True,
+        options: dict[str, Any] | None = None,
+        **lab_kw: Any,
+    ) -> Lab:
+        lab = lab_factory(**lab_kw)
+        names = [f"r{i}" for i in range(1, n + 1)]
+        lab.add_robots(names, {name: (i * spacing, 0.0) for i, name in enumerate(names)})
+        if start:
+            lab.start_all(timeout=max(60.0, 2.0 * n), beacon_interval=beacon, **(options or {}))
+        return lab
+
+    return make
+
+
+@pytest.fixture
+def fleet(request: pytest.FixtureRequest, fleet_factory: Callable[..., Lab]) -> Lab:
+    """A lab with robots running sdfrd; ``@pytest.mark.fleet(n=..., beacon=...)`` sets them."""
+    marker = request.node.get_closest_marker("fleet")
+    if marker is not None and marker.args:
+        raise TypeError("write @pytest.mark.fleet(n=3, beacon=0.5) with keywords")
+    return fleet_factory(**(marker.kwargs if marker is not None else {}))
