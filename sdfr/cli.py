@@ -9,8 +9,11 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
+from sdfr import netif, wifi
 from sdfr.client import (
     Client,
     neighbors_path,
@@ -19,8 +22,8 @@ from sdfr.client import (
     service_path,
     split_api,
 )
-from sdfr.config import DEFAULT_API
-from sdfr.errors import ApiError
+from sdfr.config import DEFAULT_API, from_args, option_help
+from sdfr.errors import ApiError, ConfigError, SdfrError
 from sdfr.model import AttrValue, attr_text
 
 Row = Sequence[object]
@@ -124,7 +127,33 @@ def build_parser() -> argparse.ArgumentParser:
     command("self", "this robot")
     command("services", "this robot's services")
     command("health", "whether both layers are up (exit status 1 when degraded)")
+    c = command(
+        "wifi-config",
+        "the fleet's ad-hoc WiFi set-up sdfrd applies at start (from sdfrd's config; does not "
+        "talk to sdfrd): prints it, and applies it unless --dry-run (needs root)",
+    )
+    c.add_argument("--config", type=Path, metavar="FILE", help="sdfrd's TOML config file")
+    for name in WIFI_CONFIG_OPTIONS:
+        c.add_argument(
+            "--" + name.replace("_", "-"), dest=name, metavar=name.upper(), help=option_help(name)
+        )
+    c.add_argument("--dry-run", action="store_true", help="print what would be done, do nothing")
+    c.add_argument("--show-key", action="store_true", help="print the WiFi key instead of ****")
     return p
+
+
+# sdfrd options that `sdfr wifi-config` takes too (wifi_secret is left out on purpose: a flag is
+# visible in the process list; put it in the config file or wifi_secret_file).
+WIFI_CONFIG_OPTIONS = (
+    "iface",
+    "fleet",
+    "state_dir",
+    "wifi",
+    "wifi_secret_file",
+    "wifi_mode",
+    "wifi_freq",
+    "wifi_country",
+)
 
 
 # -- output ------------------------------------------------------------------------------------
@@ -326,6 +355,66 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+def _wifi_config(args: argparse.Namespace) -> int:
+    """`sdfr wifi-config`: plan from sdfrd's configuration; print it; apply unless --dry-run."""
+    as_json = getattr(args, "json", False)
+    sdfrd_argv: list[str] = [] if args.config is None else ["--config", str(args.config)]
+    for name in WIFI_CONFIG_OPTIONS:
+        value = getattr(args, name)
+        if value is not None:
+            sdfrd_argv += ["--" + name.replace("_", "-"), value]
+    try:
+        cfg = from_args(sdfrd_argv)
+        cfg = replace(cfg, iface=cfg.iface or netif.default_iface())
+        assert cfg.iface is not None
+        secret, warnings = wifi.load_secret(cfg)
+        the_plan = wifi.plan(cfg, secret)
+    except ConfigError as exc:
+        print(f"sdfr: {exc}", file=sys.stderr)
+        return 2
+    for warning in warnings:
+        print(f"sdfr: warning: {warning}", file=sys.stderr)
+    wireless = wifi.is_wireless(cfg.iface)
+    notes: list[str] = []
+    if cfg.wifi == "off":
+        notes.append("wifi = off: sdfrd does not touch the radio")
+    if not wireless:
+        notes.append(
+            f"{cfg.iface} is not a wireless interface: sdfrd leaves it alone"
+            + ("" if netif.exists(cfg.iface) else f" ({cfg.iface} does not exist here)")
+        )
+    applied = False
+    if not args.dry_run:
+        try:
+            if cfg.wifi == "off":
+                raise SdfrError("wifi: is off in the configuration; pass --wifi auto to apply")
+            if not wireless:
+                raise SdfrError(f"wifi: {cfg.iface} is not a wireless interface; not touching it")
+            wifi.check_root()
+            wifi.apply(the_plan)
+        except SdfrError as exc:
+            print(f"sdfr: {exc}", file=sys.stderr)
+            return 1
+        applied = True
+    if as_json:
+        answer = the_plan.to_json(args.show_key)
+        answer.update(
+            dry_run=args.dry_run,
+            applied=applied,
+            wireless=wireless,
+            sdfrd_applies=cfg.wifi == "auto" and wireless,
+            notes=notes,
+        )
+        print(json.dumps(answer, indent=2))
+    else:
+        print(the_plan.describe(args.show_key))
+        for note in notes:
+            print(f"# note: {note}")
+        if applied:
+            print(f"# done: {cfg.iface} is joining {the_plan.ssid}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -334,6 +423,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("search: give --type T and/or --attr KEY=VALUE")
     except SystemExit as exc:  # usage error (2) or --help (0); argparse printed why
         return exc.code if isinstance(exc.code, int) else 2
+    if args.command == "wifi-config":
+        return _wifi_config(args)
     try:
         with Client(args.api, unix_socket=args.socket, timeout=args.timeout) as client:
             answer, text = COMMANDS[args.command](client, args)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -44,6 +45,12 @@ class Config:
     ttl: int = 1
     addressing: str = "manual"
     log_level: str = "info"
+    wifi: str = "auto"
+    wifi_secret: str | None = field(default=None, repr=False)
+    wifi_secret_file: Path | None = None
+    wifi_mode: str = "ibss"
+    wifi_freq: int = 2412
+    wifi_country: str | None = None
 
     @property
     def effective_ping_interval(self) -> float:
@@ -89,7 +96,48 @@ class Config:
             raise ConfigError(
                 f"log_level: must be debug, info, warning or error, got {self.log_level!r}"
             )
+        self._validate_wifi()
         return self
+
+    def _validate_wifi(self) -> None:
+        if self.wifi not in ("auto", "off"):
+            raise ConfigError(f"wifi: must be auto or off, got {self.wifi!r}")
+        if self.wifi_secret is not None and self.wifi_secret_file is not None:
+            raise ConfigError(
+                "wifi_secret: give wifi_secret or wifi_secret_file, not both "
+                "(wifi_secret_file is recommended)"
+            )
+        if self.wifi_secret is not None and len(self.wifi_secret.strip()) < WIFI_SECRET_MIN:
+            raise ConfigError(
+                f"wifi_secret: must be at least {WIFI_SECRET_MIN} characters "
+                "(surrounding spaces do not count)"
+            )
+        if self.wifi_mode not in ("ibss", "mesh"):
+            raise ConfigError(
+                f"wifi_mode: must be ibss (ad-hoc) or mesh (802.11s), got {self.wifi_mode!r}"
+            )
+        if self.wifi_freq not in WIFI_FREQS:
+            raise ConfigError(
+                f"wifi_freq: {self.wifi_freq} MHz is not a 2.4 GHz (2412-2472, 2484) or "
+                "5 GHz (5180-5320, 5500-5720, 5745-5885) WiFi channel's centre frequency"
+            )
+        if self.wifi_country is not None and not re.fullmatch(r"[A-Za-z]{2}|00", self.wifi_country):
+            raise ConfigError(
+                f"wifi_country: must be an ISO 3166-1 two-letter code such as DE or US "
+                f"(or 00 for the world domain), got {self.wifi_country!r}"
+            )
+
+
+WIFI_SECRET_MIN = 8
+WIFI_FREQS: frozenset[int] = frozenset(
+    # 2.4 GHz channels 1-13 and 14 (Japan).
+    [2407 + 5 * ch for ch in range(1, 14)]
+    + [2484]
+    # 5 GHz: 36-64 (UNII-1/2), 100-144 (UNII-2e), 149-177 (UNII-3/4); 20 MHz centres.
+    + [5000 + 5 * ch for ch in range(36, 65, 4)]
+    + [5000 + 5 * ch for ch in range(100, 145, 4)]
+    + [5000 + 5 * ch for ch in range(149, 178, 4)]
+)
 
 
 def split_hostport(key: str, value: str) -> tuple[str, int]:
@@ -131,7 +179,22 @@ _HELP: dict[str, str] = {
     "moved on conflict (set it on robots); manual: leave the interface's addresses alone "
     "(default, so a workstation's address is never touched)",
     "log_level": "debug, info, warning or error (default info)",
+    "wifi": "auto: when IFACE is wireless and a WiFi secret is configured, join the fleet's "
+    "ad-hoc WiFi (wpa_supplicant + iw) before starting; off: never touch the radio "
+    "(default auto)",
+    "wifi_secret": "the fleet's WiFi secret (8 characters or more), the same on every robot; "
+    "prefer wifi_secret_file: a flag is visible in the process list",
+    "wifi_secret_file": "file holding the fleet's WiFi secret (make it readable by root only: "
+    "chmod 600; a world-readable file is used with a warning)",
+    "wifi_mode": "ibss (IEEE 802.11 ad-hoc, WPA2-PSK) or mesh (802.11s, SAE) (default ibss)",
+    "wifi_freq": "WiFi channel centre frequency in MHz, 2.4 or 5 GHz (default 2412, channel 1)",
+    "wifi_country": "regulatory domain, ISO 3166-1 code such as DE (default: leave the system's)",
 }
+
+
+def option_help(name: str) -> str:
+    """The help text of the option `name` (a Config field), for other commands that take it."""
+    return _HELP[name]
 
 
 def _coerce(name: str, raw: Any) -> Any:
@@ -144,8 +207,9 @@ def _coerce(name: str, raw: Any) -> Any:
         "beacon_interval": float,
         "ping_interval": float,
         "reply_delay_max": float,
+        "wifi_freq": int,
     }
-    if name == "state_dir":
+    if name in ("state_dir", "wifi_secret_file"):
         return Path(str(raw))
     kind = kinds.get(name)
     if kind is None:
@@ -211,10 +275,17 @@ def from_args(argv: list[str] | None = None) -> Config:
     return replace(Config(), **values).validate()
 
 
+# Never put on a command line (other users can read /proc/PID/cmdline); the layers do not
+# need it: the supervisor applies the WiFi set-up itself.
+_NOT_PASSED = frozenset({"wifi_secret"})
+
+
 def to_args(cfg: Config) -> list[str]:
-    """The flags that rebuild `cfg` (the supervisor passes them to its layers)."""
+    """The flags that rebuild `cfg` (the supervisor passes them to its layers), but secrets."""
     out: list[str] = []
     for f in fields(Config):
+        if f.name in _NOT_PASSED:
+            continue
         value = getattr(cfg, f.name)
         if value is not None:
             out += ["--" + f.name.replace("_", "-"), str(value)]

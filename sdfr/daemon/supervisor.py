@@ -20,7 +20,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 
-from sdfr import netif
+from sdfr import netif, wifi
 from sdfr.config import Config, from_args, to_args
 from sdfr.errors import SdfrError
 from sdfr.store import Store
@@ -152,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg = resolve(from_args(argv))
         logging.getLogger().setLevel(cfg.log_level.upper())
         Store(cfg.state_dir).close()  # a state directory we cannot use is reported once, here
+        # Join the fleet's WiFi before the layers start; a wired interface, or wifi = off, or
+        # no secret configured: the radio is left alone.
+        wifi.setup(cfg)
     except SdfrError as exc:
         print(f"sdfrd: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,400 @@
+"""Joining the fleet's ad-hoc WiFi: IBSS (WPA2-PSK) or 802.11s mesh (SAE), via wpa_supplicant.
+
+Planning has no I/O: `plan(cfg)` turns the configuration into a `WifiPlan` (SSID, key,
+wpa_supplicant configuration text, command lines). `apply(plan)` writes the configuration
+file and runs the commands. `setup(cfg)` is what `sdfrd` does at start.
+
+Derivation (the same on every robot of a fleet, so nothing but the secret is shared):
+
+- SSID (the mesh id in mesh mode): ``sdfr-fleet-<fleet id>``, e.g. ``sdfr-fleet-7``; fleets
+  with different ids share the air on separate networks.
+- key: ``PBKDF2-HMAC-SHA256(password=secret (UTF-8, surrounding whitespace removed),
+  salt="sdfr-fleet-<fleet id>", iterations=100000, length=32 bytes)``, written as 64
+  lowercase hex digits. In IBSS mode it is the raw WPA2 PSK (``psk=<hex>``, no further
+  hashing by wpa_supplicant); in mesh mode the 64 hex digits are the SAE password. The
+  same secret gives a different key in another fleet.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shlex
+import signal
+import stat
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sdfr.config import WIFI_SECRET_MIN, Config
+from sdfr.errors import ConfigError, SdfrError
+
+log = logging.getLogger("sdfr.wifi")
+
+SSID_PREFIX = "sdfr-fleet-"
+KDF_ITERATIONS = 100_000
+MASK = "*" * 16
+_SYS_NET = Path("/sys/class/net")
+
+# Where each program comes from on Debian, for the "not installed" message.
+PACKAGES = {"ip": "iproute2", "iw": "iw", "wpa_supplicant": "wpasupplicant"}
+
+Runner = Callable[..., "subprocess.CompletedProcess[str]"]
+
+
+def ssid_for(fleet: int) -> str:
+    return f"{SSID_PREFIX}{fleet}"
+
+
+def derive_key(secret: str, fleet: int) -> str:
+    """64 hex digits from the fleet secret and the fleet id (see the module's docstring)."""
+    secret = secret.strip()
+    if not secret:
+        raise ConfigError("wifi_secret: is empty")
+    raw = hashlib.pbkdf2_hmac(
+        "sha256", secret.encode("utf-8"), ssid_for(fleet).encode("ascii"), KDF_ITERATIONS, 32
+    )
+    return raw.hex()
+
+
+@dataclass(frozen=True, slots=True)
+class WifiPlan:
+    """Everything that joining the fleet's WiFi does, computed without touching the machine."""
+
+    iface: str
+    fleet: int
+    mode: str  # "ibss" or "mesh"
+    ssid: str
+    frequency: int
+    country: str | None
+    config_path: Path
+    pid_path: Path
+    key: str = field(repr=False)
+    config_text: str = field(repr=False)
+    commands: tuple[tuple[str, ...], ...]
+
+    def config_shown(self, show_key: bool = False) -> str:
+        """The configuration file's text, the key masked unless `show_key`."""
+        return self.config_text if show_key else self.config_text.replace(self.key, MASK)
+
+    def command_lines(self) -> list[str]:
+        return [shlex.join(argv) for argv in self.commands]
+
+    def to_json(self, show_key: bool = False) -> dict[str, Any]:
+        return {
+            "iface": self.iface,
+            "fleet": self.fleet,
+            "mode": self.mode,
+            "ssid": self.ssid,
+            "frequency": self.frequency,
+            "country": self.country,
+            "key": self.key if show_key else None,
+            "key_derivation": key_derivation_text(self.fleet),
+            "config_path": str(self.config_path),
+            "config_mode": "0600",
+            "config": self.config_shown(show_key),
+            "stop_previous": str(self.pid_path),
+            "commands": [list(argv) for argv in self.commands],
+        }
+
+    def describe(self, show_key: bool = False) -> str:
+        """What `apply` does, for humans: the file it writes and the commands it runs."""
+        key_note = "" if show_key else " (key masked; --show-key prints it)"
+        lines = [
+            f"# WiFi set-up of fleet {self.fleet} on {self.iface}: "
+            f"{'IBSS ad-hoc, WPA2-PSK' if self.mode == 'ibss' else '802.11s mesh, SAE'}, "
+            f"{self.frequency} MHz",
+            f"# ssid: {self.ssid}",
+            f"# key: {key_derivation_text(self.fleet)}",
+            f"# 1. write {self.config_path} (mode 0600){key_note}:",
+            f"# ---- {self.config_path.name} ----",
+            *self.config_shown(show_key).splitlines(),
+            f"# ---- end of {self.config_path.name} ----",
+            f"# 2. stop the wpa_supplicant whose pid is in {self.pid_path}, if it still runs",
+            "# 3. run:",
+            *self.command_lines(),
+        ]
+        return "\n".join(lines)
+
+
+def key_derivation_text(fleet: int) -> str:
+    return (
+        f'PBKDF2-HMAC-SHA256(secret, salt "{ssid_for(fleet)}", {KDF_ITERATIONS} iterations) '
+        "as 64 hex digits"
+    )
+
+
+def supplicant_config(
+    mode: str, ssid: str, frequency: int, key: str, country: str | None = None
+) -> str:
+    """The wpa_supplicant configuration text for the fleet's network."""
+    head = [
+        "# Generated by sdfr from sdfrd's configuration (wifi_* keys); rewritten at every start.",
+        "ctrl_interface=/run/wpa_supplicant",
+    ]
+    if country is not None:
+        head.append(f"country={country.upper()}")
+    if mode == "ibss":
+        head.append("ap_scan=2")
+        net = [
+            f'ssid="{ssid}"',
+            "mode=1",
+            f"frequency={frequency}",
+            "proto=RSN",
+            "key_mgmt=WPA-PSK",
+            "pairwise=CCMP",
+            "group=CCMP",
+            f"psk={key}",
+        ]
+    elif mode == "mesh":
+        net = [
+            f'ssid="{ssid}"',
+            "mode=5",
+            f"frequency={frequency}",
+            "key_mgmt=SAE",
+            f'sae_password="{key}"',
+        ]
+    else:
+        raise ConfigError(f"wifi_mode: must be ibss or mesh, got {mode!r}")
+    return "\n".join([*head, "", "network={", *(f"\t{line}" for line in net), "}", ""])
+
+
+def plan(cfg: Config, secret: str | None = None) -> WifiPlan:
+    """The WiFi set-up for `cfg` (iface resolved); `secret` defaults to cfg.wifi_secret."""
+    if cfg.iface is None:
+        raise ConfigError("iface: the WiFi set-up needs an interface; pass --iface")
+    secret = secret if secret is not None else cfg.wifi_secret
+    if secret is None:
+        raise ConfigError(
+            "wifi_secret: no WiFi secret configured; set wifi_secret_file (recommended) "
+            "or wifi_secret"
+        )
+    iface = cfg.iface
+    ssid = ssid_for(cfg.fleet)
+    key = derive_key(secret, cfg.fleet)
+    country = cfg.wifi_country.upper() if cfg.wifi_country is not None else None
+    config_path = cfg.state_dir / f"wpa_supplicant-{iface}.conf"
+    pid_path = cfg.state_dir / f"wpa_supplicant-{iface}.pid"
+    iftype = ("set", "type", "ibss") if cfg.wifi_mode == "ibss" else ("set", "type", "mesh")
+    commands: list[tuple[str, ...]] = []
+    if country is not None:
+        commands.append(("iw", "reg", "set", country))
+    commands += [
+        ("ip", "link", "set", iface, "down"),
+        ("iw", "dev", iface, *iftype),
+        ("ip", "link", "set", iface, "up"),
+        (
+            "wpa_supplicant",
+            "-B",
+            "-D",
+            "nl80211",
+            "-i",
+            iface,
+            "-c",
+            str(config_path),
+            "-P",
+            str(pid_path),
+        ),
+    ]
+    return WifiPlan(
+        iface=iface,
+        fleet=cfg.fleet,
+        mode=cfg.wifi_mode,
+        ssid=ssid,
+        frequency=cfg.wifi_freq,
+        country=country,
+        config_path=config_path,
+        pid_path=pid_path,
+        key=key,
+        config_text=supplicant_config(cfg.wifi_mode, ssid, cfg.wifi_freq, key, country),
+        commands=tuple(commands),
+    )
+
+
+# -- I/O ---------------------------------------------------------------------------------------
+
+
+def is_wireless(iface: str, sys_net: Path | None = None) -> bool:
+    """Whether the kernel calls `iface` a WiFi interface (cfg80211 / wireless extensions)."""
+    base = (sys_net if sys_net is not None else _SYS_NET) / iface
+    return (base / "wireless").exists() or (base / "phy80211").exists()
+
+
+def load_secret(cfg: Config) -> tuple[str | None, list[str]]:
+    """The configured secret (wifi_secret, else wifi_secret_file's content) and warnings."""
+    if cfg.wifi_secret is not None:
+        return cfg.wifi_secret, []
+    path = cfg.wifi_secret_file
+    if path is None:
+        return None, []
+    warnings: list[str] = []
+    try:
+        mode = path.stat().st_mode
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"wifi_secret_file: {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"wifi_secret_file: cannot read {path}: {exc}") from None
+    if mode & stat.S_IROTH:
+        warnings.append(
+            f"wifi_secret_file: {path} is readable by every user (mode "
+            f"{stat.S_IMODE(mode):04o}); make it readable by root only: chmod 600 {path}"
+        )
+    if len(text.strip()) < WIFI_SECRET_MIN:
+        raise ConfigError(
+            f"wifi_secret_file: the secret in {path} must be at least {WIFI_SECRET_MIN} "
+            "characters (surrounding whitespace does not count)"
+        )
+    return text, warnings
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write `text` to `path` with mode 0600 from the first byte, atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.fchmod(fd, 0o600)  # whatever the umask
+        os.write(fd, text.encode("utf-8"))
+    finally:
+        os.close(fd)
+    tmp.replace(path)
+
+
+def _stop_previous(pid_path: Path, timeout: float = 3.0) -> int | None:
+    """Stop the wpa_supplicant we started last time on this interface, if it still runs."""
+    try:
+        pid = int(pid_path.read_text().strip())
+    except (OSError, ValueError):
+        return None
+    try:
+        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        comm = ""
+    if comm != "wpa_supplicant":  # gone, or the pid was reused: leave it alone
+        pid_path.unlink(missing_ok=True)
+        return None
+    try:
+        os.kill(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return None
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and Path(f"/proc/{pid}").exists():
+        time.sleep(0.05)
+    pid_path.unlink(missing_ok=True)
+    return pid
+
+
+def _hint(argv: Sequence[str], plan: WifiPlan) -> str:
+    prog = argv[0]
+    if prog == "iw" and argv[1] == "reg":
+        return "check wifi_country is a valid regulatory domain (`iw reg get`)"
+    if prog == "iw":
+        kind = "IBSS" if plan.mode == "ibss" else "mesh point"
+        return (
+            f"check that {plan.iface}'s driver supports {kind} "
+            "(`iw list`: Supported interface modes) and that nothing else manages it "
+            f"(NetworkManager: `nmcli device set {plan.iface} managed no`)"
+        )
+    if prog == "ip":
+        return f"check that {plan.iface} exists (`ip link`) and is not blocked (`rfkill list`)"
+    return (
+        f"check that no other wpa_supplicant or NetworkManager manages {plan.iface} "
+        f"(`systemctl stop wpa_supplicant`; `nmcli device set {plan.iface} managed no`), that "
+        f"{plan.frequency} MHz is allowed for {plan.mode} here (`iw reg get`, `iw list`), and "
+        "that this wpa_supplicant supports it (mesh needs CONFIG_MESH and SAE, 2.7 or later); "
+        f"try `{shlex.join(argv)} -d` without -B to see why"
+    )
+
+
+def apply(plan: WifiPlan, runner: Runner | None = None, timeout: float = 30.0) -> None:
+    """Write the configuration file (0600) and run the plan's commands, in order.
+
+    `runner` is called like subprocess.run (the default). A failure raises SdfrError naming
+    the command and what to check. Needs root.
+    """
+    run = runner if runner is not None else subprocess.run
+    try:
+        _write_private(plan.config_path, plan.config_text)
+    except OSError as exc:
+        raise SdfrError(f"wifi: cannot write {plan.config_path}: {exc}") from None
+    stopped = _stop_previous(plan.pid_path)
+    if stopped is not None:
+        log.info("stopped the previous wpa_supplicant on %s (pid %d)", plan.iface, stopped)
+    for argv in plan.commands:
+        line = shlex.join(argv)
+        try:
+            done = run(list(argv), capture_output=True, text=True, timeout=timeout, check=False)
+        except FileNotFoundError:
+            package = PACKAGES.get(argv[0], argv[0])
+            raise SdfrError(
+                f"wifi: `{argv[0]}` is not installed (needed for `{line}`); "
+                f"on Debian: apt install {package}"
+            ) from None
+        except subprocess.TimeoutExpired:
+            raise SdfrError(f"wifi: `{line}` did not finish in {timeout:.0f} s") from None
+        except PermissionError as exc:
+            raise SdfrError(f"wifi: cannot run `{line}`: {exc}") from None
+        if done.returncode != 0:
+            said = (done.stderr or done.stdout or "").strip().splitlines()
+            why = f": {said[-1].strip()}" if said else ""
+            if "not permitted" in why.lower() or "permission denied" in why.lower():
+                raise SdfrError(f"wifi: `{line}` failed{why}; the WiFi set-up needs root")
+            raise SdfrError(
+                f"wifi: `{line}` failed (exit {done.returncode}){why}; {_hint(argv, plan)}"
+            )
+        log.debug("wifi: ran %s", line)
+
+
+def check_root(geteuid: Callable[[], int] | None = None) -> None:
+    if (geteuid or os.geteuid)() != 0:
+        raise SdfrError(
+            "wifi: changing the interface's mode and starting wpa_supplicant needs root "
+            "(run as root, or use --dry-run to see what would be done)"
+        )
+
+
+def setup(
+    cfg: Config,
+    runner: Runner | None = None,
+    sys_net: Path | None = None,
+    geteuid: Callable[[], int] | None = None,
+) -> WifiPlan | None:
+    """What `sdfrd` does at start: apply the plan when wifi=auto, the interface is wireless and
+    a secret is configured; otherwise leave the radio alone. Returns the applied plan."""
+    if cfg.iface is None:
+        raise ConfigError("iface: the WiFi set-up needs an interface; pass --iface")
+    if cfg.wifi == "off":
+        log.debug("wifi = off: the radio is left alone")
+        return None
+    if not is_wireless(cfg.iface, sys_net):
+        log.debug("%s is not a wireless interface: no WiFi set-up", cfg.iface)
+        return None
+    secret, warnings = load_secret(cfg)
+    for warning in warnings:
+        log.warning("%s", warning)
+    if secret is None:
+        log.info(
+            "%s is wireless but no wifi_secret/wifi_secret_file is configured: "
+            "its WiFi settings are left as they are",
+            cfg.iface,
+        )
+        return None
+    the_plan = plan(cfg, secret)
+    check_root(geteuid)
+    apply(the_plan, runner)
+    log.info(
+        "wifi: %s joins %s (%s, %d MHz) with wpa_supplicant (config %s, pid file %s)",
+        the_plan.iface,
+        the_plan.ssid,
+        the_plan.mode,
+        the_plan.frequency,
+        the_plan.config_path,
+        the_plan.pid_path,
+    )
+    return the_plan
