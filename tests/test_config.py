@@ -89,3 +89,8 @@ def test_sdfrd_reports_bad_flags_in_one_line(
     assert err.startswith("sdfrd: iface:") and err.count("\n") == 1
     assert supervisor.main(["--iface", "lo", "--beacon-interval", "-1"]) == 2
     assert "beacon_interval" in capsys.readouterr().err
+
+
+def test_the_shipped_robot_config_parses() -> None:
+    cfg = from_args(["--config", str(Path(__file__).parent.parent / "examples" / "robot.toml")])
+    assert (cfg.addressing, cfg.fleet, cfg.iface) == ("auto", 3, "wlan0")
