@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests)
 
-.PHONY: venv test check fmt bench netlab clean distclean
+.PHONY: venv test test-netem check fmt bench netlab clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -19,6 +19,12 @@ venv:
 
 test: $(STAMP)
 	$(BIN)/pytest -q tests/
+	$(MAKE) --no-print-directory test-netem
+
+# The netem tier: tests/netem in a Debian kernel under virtme-ng (this kernel has no
+# sch_netem). Fails if the VM cannot run; SDFR_SKIP_VM=1 skips it, saying so.
+test-netem: $(STAMP)
+	bash scripts/vm-netem.sh
 
 check: $(STAMP)
 	$(BIN)/ruff check $(LINT_PATHS)

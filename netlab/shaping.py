@@ -23,9 +23,22 @@ from typing import Any
 from pyroute2 import IPRoute
 from pyroute2.netlink.exceptions import NetlinkError
 from pyroute2.netlink.rtnl import TC_H_ROOT
+from pyroute2.netlink.rtnl.tcmsg import sched_netem
 
 from netlab.doctor import Capabilities
 from netlab.errors import InvalidShapeError, ShapingUnsupported, kernel_errors
+
+
+def _netem_rate_is_an_option(request: dict[str, Any]) -> None:
+    request.pop("rate", None)
+
+
+# pyroute2 (0.9.x) turns netem's `rate` into TCA_OPTIONS/TCA_NETEM_RATE but leaves the
+# key in the request too, which it then encodes as the message's TCA_RATE attribute and
+# fails (TypeError: object of type 'int' has no len()). Its tbf, htb and cake plugins
+# drop the key after use in a `fix_request` hook; give netem the same.
+if not hasattr(sched_netem, "fix_request"):
+    sched_netem.fix_request = _netem_rate_is_an_option
 
 ROOT_HANDLE = 0x10000  # 1:0
 NETEM_LIMIT = 1000  # packets, netem's own default

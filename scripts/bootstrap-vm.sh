@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# Set up what the VM tier (`make test-netem`, scripts/vm-netem.sh) needs.
+# Idempotent and quiet: installs only what is missing.
+#
+#  * Debian packages (root): qemu-system-x86 (the emulator), linux-image-amd64
+#    (a kernel with sch_netem as a module), busybox-static (virtme-ng builds its
+#    initramfs from busybox). One apt-get run, so the kernel's initramfs is
+#    generated once.
+#  * virtme-ng in its own venv, .venv/vm: its dependencies stay out of the
+#    project's environment (the host tests run against exactly the project's),
+#    and under .venv it is ignored by git and removed by `make distclean`.
+#
+# Exits non-zero, saying why, when something cannot be installed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+VIRTME_NG="virtme-ng==1.42"
+VM_VENV=.venv/vm
+
+die() {
+    echo "bootstrap-vm: $*" >&2
+    exit 1
+}
+
+# A kernel image whose modules include sch_netem.
+have_kernel() {
+    local img ver
+    for img in /boot/vmlinuz-*-amd64; do
+        [ -e "$img" ] || continue
+        ver=${img#/boot/vmlinuz-}
+        if compgen -G "/lib/modules/$ver/kernel/net/sched/sch_netem.ko*" >/dev/null; then
+            return 0
+        fi
+    done
+    return 1
+}
+
+missing=()
+command -v qemu-system-x86_64 >/dev/null 2>&1 || missing+=(qemu-system-x86)
+have_kernel || missing+=(linux-image-amd64)
+command -v busybox >/dev/null 2>&1 || missing+=(busybox-static)
+
+if [ ${#missing[@]} -gt 0 ]; then
+    if [ "$(id -u)" -ne 0 ]; then
+        die "not root: cannot install ${missing[*]} (run as root, or install them by hand)"
+    fi
+    command -v apt-get >/dev/null 2>&1 || die "no apt-get: install by hand: ${missing[*]}"
+    echo "bootstrap-vm: apt-get install ${missing[*]}"
+    export DEBIAN_FRONTEND=noninteractive
+    log=$(mktemp)
+    if ! { apt-get update -q && apt-get install -y -q --no-install-recommends "${missing[@]}"; } \
+        >"$log" 2>&1 </dev/null; then
+        cat "$log" >&2
+        rm -f "$log"
+        die "apt-get failed"
+    fi
+    rm -f "$log"
+    have_kernel || die "linux-image-amd64 installed, but no /boot/vmlinuz-*-amd64 with sch_netem"
+fi
+
+stamp=$VM_VENV/.installed
+if [ ! -x "$VM_VENV/bin/vng" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$VIRTME_NG" ]; then
+    echo "bootstrap-vm: pip install $VIRTME_NG into $VM_VENV"
+    PY=${PYTHON:-python3}
+    [ -x .venv/bin/python ] && PY=.venv/bin/python
+    log=$(mktemp)
+    if ! { [ -x "$VM_VENV/bin/python" ] || "$PY" -m venv "$VM_VENV"; } >"$log" 2>&1 ||
+        ! "$VM_VENV/bin/python" -m pip install -q --disable-pip-version-check --no-input \
+            "$VIRTME_NG" >>"$log" 2>&1 </dev/null; then
+        cat "$log" >&2
+        rm -f "$log"
+        die "pip install $VIRTME_NG failed"
+    fi
+    rm -f "$log"
+    echo "$VIRTME_NG" >"$stamp"
+fi

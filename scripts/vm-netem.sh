@@ -1,0 +1,161 @@
+#!/usr/bin/env bash
+# The VM tier: run tests/netem inside a Debian kernel that has sch_netem.
+#
+#   scripts/vm-netem.sh [PYTEST ARGS...]     (default: -v -s tests/netem)
+#
+# This machine's kernel has no netem (see ../shared/ENVIRONMENT.md), so the
+# newest /boot/vmlinuz-*-amd64 is booted with virtme-ng under QEMU: the guest
+# sees the host's filesystem read-only (with a writable overlay on /tmp, /etc,
+# /var...), so the project's .venv runs there as it is. Results come back
+# through a --rwdir: pytest's output, its JUnit XML and its exit status, which
+# becomes this script's. Every test must run: a skip inside the VM fails the tier.
+#
+# Environment:
+#   SDFR_SKIP_VM=1        skip the tier (says so; exit 0)
+#   SDFR_VM_TIMEOUT=900   seconds before the VM is killed and the tier fails
+#   SDFR_VM_KERNEL=PATH   the kernel image to boot (default: newest Debian amd64)
+#   SDFR_VM_KVM=1         use KVM (default off: it hangs on the CI machines)
+#
+# No leftovers: the VM runs in a process group of its own (timeout's), which is
+# killed on timeout, Ctrl-C or any exit; the results directory is removed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+repo=$(pwd)
+
+if [ "${SDFR_SKIP_VM:-0}" = 1 ]; then
+    echo "vm-netem: SKIPPED (SDFR_SKIP_VM=1): the netem tier did not run"
+    exit 0
+fi
+
+bash scripts/bootstrap-vm.sh
+export PATH="$repo/.venv/vm/bin:$PATH" # vng runs virtme-run from PATH
+
+kernel=${SDFR_VM_KERNEL:-}
+if [ -z "$kernel" ]; then
+    kernel=$(printf '%s\n' /boot/vmlinuz-*-amd64 | sort -V | tail -n 1)
+fi
+kver=${kernel#/boot/vmlinuz-}
+[ -r "$kernel" ] || {
+    echo "vm-netem: FAILED: no kernel image $kernel" >&2
+    exit 1
+}
+[ -d "/lib/modules/$kver" ] || {
+    echo "vm-netem: FAILED: no modules for $kver in /lib/modules" >&2
+    exit 1
+}
+
+limit=${SDFR_VM_TIMEOUT:-900}
+pytest_args=("$@")
+[ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s tests/netem)
+
+res=$(mktemp -d -t sdfr-vm-netem.XXXXXX)
+vm_pgid="" # timeout's pid, and the id of the process group of the whole VM
+vm_reaped=""
+tail_pid=""
+
+stop_vm() {
+    # The group: timeout, vng, virtme-run and qemu. Ask timeout to stop it (it passes the
+    # signal on to the group), give it 20 s to go, then kill what is left.
+    [ -n "$vm_pgid" ] || return 0
+    # Only while timeout is our unreaped child: its pid cannot have been reused.
+    [ -n "$vm_reaped" ] || kill -TERM "$vm_pgid" 2>/dev/null || true
+    for _ in $(seq 40); do
+        kill -0 -- "-$vm_pgid" 2>/dev/null || break
+        sleep 0.5
+    done
+    kill -KILL -- "-$vm_pgid" 2>/dev/null || true
+    wait "$vm_pgid" 2>/dev/null || true
+    vm_pgid=""
+}
+
+cleanup() {
+    trap '' INT TERM # a second Ctrl-C must not cut the clean-up short
+    stop_vm
+    if [ -n "$tail_pid" ]; then
+        kill "$tail_pid" 2>/dev/null || true
+        wait "$tail_pid" 2>/dev/null || true
+    fi
+    rm -rf "$res"
+}
+trap cleanup EXIT
+trap 'echo "vm-netem: interrupted, stopping the VM" >&2; exit 130' INT
+trap 'echo "vm-netem: terminated, stopping the VM" >&2; exit 143' TERM
+
+# What runs inside the guest (as root, cwd the repository); its $ expand there.
+# shellcheck disable=SC2016
+{
+    echo 'set -u'
+    printf 'res=%q\n' "$res"
+    printf 'cd %q\n' "$repo"
+    echo 'echo "vm: up after $(cut -d" " -f1 /proc/uptime)s: kernel $(uname -r), $(nproc) cpu"'
+    echo 'if ! modprobe sch_netem; then touch "$res/no-netem"; exit 0; fi'
+    echo 'export PYTHONDONTWRITEBYTECODE=1 # the repository is read-only in the guest'
+    # Not the hypothesis plugin: these tests do not use it, and importing it is a good part
+    # of pytest's start-up under emulation.
+    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
+        "$(printf '%q ' "${pytest_args[@]}")"
+    echo 'echo "${PIPESTATUS[0]}" >"$res/rc"'
+    echo 'echo "vm: pytest done after $(cut -d" " -f1 /proc/uptime)s of uptime"'
+} >"$res/inner.sh"
+
+# One vCPU: under software emulation on a 2-core machine a second one made the guest
+# 2-3 times slower (its vCPU threads contend with each other and the host).
+vng_args=(--run "$kernel" --user root --cpus 1 --memory 1G --rwdir "$res" --cwd "$repo")
+[ "${SDFR_VM_KVM:-0}" = 1 ] || vng_args+=(--disable-kvm)
+
+echo "vm-netem: booting $kver under QEMU$([ "${SDFR_VM_KVM:-0}" = 1 ] || echo ' (software emulation)'), limit ${limit}s"
+start=$SECONDS
+# timeout puts itself and the VM in a new process group, killed as a whole on expiry.
+# vng's own temporary files go under $res too (TMPDIR), so they go with it.
+mkdir "$res/tmp"
+TMPDIR="$res/tmp" timeout -k 20 "$limit" vng "${vng_args[@]}" --exec "bash $res/inner.sh" \
+    </dev/null >"$res/vm.log" 2>&1 &
+vm_pgid=$!
+tail -n +1 -s 0.5 -f --pid="$vm_pgid" "$res/vm.log" &
+tail_pid=$!
+vm_status=0
+wait "$vm_pgid" || vm_status=$?
+vm_reaped=1
+stop_vm # whatever of the VM outlived vng (qemu exits after it)
+wait "$tail_pid" 2>/dev/null || true
+tail_pid=""
+elapsed=$((SECONDS - start))
+
+if [ "$vm_status" = 124 ] || [ "$vm_status" = 137 ]; then
+    echo "vm-netem: FAILED: the VM ran over ${limit}s and was killed (SDFR_VM_TIMEOUT)" >&2
+    exit 1
+fi
+if [ -e "$res/no-netem" ]; then
+    echo "vm-netem: FAILED: \`modprobe sch_netem\` failed in the guest ($kver)" >&2
+    exit 1
+fi
+if [ ! -s "$res/rc" ]; then
+    echo "vm-netem: FAILED: the VM (vng exit $vm_status, ${elapsed}s) reported no test result;" \
+        "its output is above" >&2
+    exit 1
+fi
+rc=$(cat "$res/rc")
+
+# The JUnit totals: every collected test must have run (no skips in the VM).
+summary=$(.venv/bin/python - "$res/junit.xml" <<'EOF'
+import sys
+import xml.etree.ElementTree as ET
+
+root = ET.parse(sys.argv[1]).getroot()
+suite = root if root.tag == "testsuite" else root.find("testsuite")
+n = {k: int(suite.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")}
+print(n["tests"], n["failures"], n["errors"], n["skipped"], suite.get("time", "?"))
+EOF
+) || summary=""
+read -r tests failures errors skipped ptime <<<"${summary:-0 0 0 0 ?}"
+echo "vm-netem: $tests tests in the VM: $((tests - failures - errors - skipped)) passed," \
+    "$failures failed, $errors errors, $skipped skipped (pytest ${ptime}s, VM ${elapsed}s in all)"
+if [ "$rc" != 0 ]; then
+    echo "vm-netem: FAILED: pytest exited $rc in the VM" >&2
+    exit "$rc"
+fi
+if [ "$tests" = 0 ] || [ "$skipped" != 0 ]; then
+    echo "vm-netem: FAILED: tests were skipped or none ran in the VM, where netem must work" >&2
+    exit 1
+fi
+echo "vm-netem: passed"
