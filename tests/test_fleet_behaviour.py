@@ -1,0 +1,129 @@
+"""Issue 4's fleet behaviours with real daemons in netlab, at the product's 10 s beacon.
+
+Start-up, join, graceful leave, service churn and reboot do not wait for beacons
+(Discovery on start, Update on change, Byebye on stop), so these run with the
+default beacon and the deadlines as written. A failed check says which robot
+missed what.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from netlab.lab import Lab
+from sdfr.errors import ApiError
+from sdfr.model import Service
+from sdfr.store import Store
+
+pytestmark = pytest.mark.root
+
+BEACON = 10.0  # the product default
+
+
+def wait_for(what: str, problems: Callable[[], list[str]], within: float) -> float:
+    """Wait until `problems()` is empty; fail listing what is still wrong."""
+    start = time.monotonic()
+    left: list[str] = ["not checked yet"]
+    while time.monotonic() - start <= within:
+        try:
+            left = problems()
+        except ApiError as exc:
+            left = [str(exc)]
+        if not left:
+            return time.monotonic() - start
+        time.sleep(0.01)
+    pytest.fail(f"{what}: not within {within} s: " + "; ".join(left))
+
+
+def services_of(names: list[str]) -> dict[str, set[str]]:
+    return {n: {f"{n} camera", f"{n} lidar"} for n in names}
+
+
+def missing(lab: Lab, expect: dict[str, dict[str, set[str]]]) -> list[str]:
+    """`expect[a][b]`: the service names robot a must list for reachable robot b (exactly
+    the robots given, no others)."""
+    wrong = []
+    for a, peers in expect.items():
+        seen = {
+            n["robot_id"]: {s["name"] for s in n["services"]} for n in lab.client(a).neighbors()
+        }
+        if seen != peers:
+            wrong.append(f"{a} lists {seen} instead of {peers}")
+    return wrong
+
+
+def preload(lab: Lab, name: str, services: set[str]) -> None:
+    """Registrations in the robot's state dir before its daemon starts."""
+    robot = lab.robot(name)
+    store = Store(robot.state_dir)
+    try:
+        for i, sname in enumerate(sorted(services)):
+            store.add_service(Service(f"{name}-{i}", sname, "sensor." + sname.split()[-1]))
+    finally:
+        store.close()
+
+
+def all_expect(names: list[str], svc: dict[str, set[str]]) -> dict[str, dict[str, set[str]]]:
+    return {a: {b: svc[b] for b in names if b != a} for a in names}
+
+
+def test_startup_join_leave_churn_reboot(lab: Lab) -> None:
+    names = [f"r{i}" for i in range(1, 7)]
+    lab.add_robots(names)
+    svc = services_of(names)
+    for n in names:
+        preload(lab, n, svc[n])
+
+    # 1. Start-up: six robots started together list each other, with services, within 2 s
+    #    of the fleet being up (by Discovery on start: the next beacon is 10 s away).
+    five = names[:5]
+    lab.start_all(five, beacon_interval=BEACON)
+    took = wait_for("start-up", lambda: missing(lab, all_expect(five, svc)), 2.0)
+    assert took <= 2.0
+
+    # 2. Join: a robot joining the running fleet is listed by all, and lists all, within 1 s.
+    lab.start("r6", beacon_interval=BEACON)
+    took = wait_for("join of r6", lambda: missing(lab, all_expect(names, svc)), 1.0)
+    assert took <= 1.0
+
+    # 6. Service churn: publish and unpublish on one robot seen by all within 500 ms.
+    sid = lab.client("r2").publish("r2 arm", "actuator.arm", attributes={"dof": 6})
+    svc["r2"] = svc["r2"] | {"r2 arm"}
+    took = wait_for("publish on r2", lambda: missing(lab, all_expect(names, svc)), 0.5)
+    lab.client("r2").unpublish(sid)
+    svc["r2"] = svc["r2"] - {"r2 arm"}
+    took = max(took, wait_for("unpublish on r2", lambda: missing(lab, all_expect(names, svc)), 0.5))
+    assert took <= 0.5
+
+    # 3. Graceful leave: Byebye drops r6 from every reachable list within 200 ms;
+    #    it stays in history with its services.
+    # The Byebye goes out before sdfrd exits, so the peers have it when stop() returns.
+    lab.stop("r6")
+    rest = names[:5]
+    wait_for("r6's Byebye", lambda: missing(lab, all_expect(rest, svc)), 0.2)
+    for a in rest:
+        hist = {r["robot_id"]: r for r in lab.client(a).history()}
+        assert hist["r6"]["reachable"] is False, a
+        assert {s["name"] for s in hist["r6"]["services"]} == svc["r6"], a
+
+    # 9. Reboot: r1 restarted with a new boot id and another service set: every peer
+    #    replaces the old set, never merges the two.
+    lab.stop("r1")
+    store = Store(lab.robot("r1").state_dir)
+    try:
+        for s in store.local_state()[1]:
+            store.remove_service(s.id)
+        store.add_service(Service("r1-new", "r1 gripper", "actuator.gripper"))
+    finally:
+        store.close()
+    lab.start("r1", beacon_interval=BEACON)
+    svc["r1"] = {"r1 gripper"}
+    wait_for("r1 rebooted with a new set", lambda: missing(lab, all_expect(rest, svc)), 2.0)
+    boots: dict[str, Any] = {
+        a: {r["robot_id"]: r["boot_id"] for r in lab.client(a).history()}["r1"] for a in rest[1:]
+    }
+    assert set(boots.values()) == {2}, boots
