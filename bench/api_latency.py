@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import threading
@@ -32,8 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sdfr.client import Client
-from tests.nsfleet import NsFleet, unique_name
+from netlab.lab import Lab
 
 PAPER = {
     "publish_ms": [95, 130],
@@ -91,60 +89,36 @@ def wait(what: str, pred: Any, timeout: float) -> None:
 
 
 def run_fleet(n: int, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
-    with NsFleet(unique_name(), n) as fleet:
-        procs = []
-        for i in range(1, n + 1):
-            state = tmp / f"n{n}-r{i}"
-            log = open(tmp / f"n{n}-r{i}.log", "wb")  # noqa: SIM115
-            procs.append(
-                fleet.popen(
-                    i,
-                    [
-                        sys.executable,
-                        "-m",
-                        "sdfr.daemon.supervisor",
-                        "--iface",
-                        "eth0",
-                        "--fleet",
-                        "1",
-                        "--robot-id",
-                        f"r{i}",
-                        "--state-dir",
-                        str(state),
-                    ],
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                )
-            )
-            log.close()
-        clients = [Client(unix_socket=tmp / f"n{n}-r{i}" / "api.sock") for i in range(1, n + 1)]
-        for c in clients:
-            wait("daemon up", lambda c=c: c.health()["discovery"] == "up", 20)
-        for i, c in enumerate(clients[1:], start=2):
+    with Lab(f"bench{n}", workdir=tmp / f"n{n}") as lab:
+        names = [f"r{i}" for i in range(1, n + 1)]
+        lab.add_robots(names)
+        lab.start_all()  # the product's defaults: 10 s beacon
+        for name in names[1:]:
+            client = lab.client(name)
             for k in range(100):
-                c.publish(
-                    f"r{i} service {k}",
+                client.publish(
+                    f"{name} service {k}",
                     f"bench.kind{k % 7}",
-                    f"http://r{i}:9000/{k}",
-                    {"index": k, "frame": f"r{i}/base_link"},
+                    f"http://{name}:9000/{k}",
+                    {"index": k, "frame": f"{name}/base_link"},
                 )
+        first = lab.client("r1")
         wait(
             "robot 1 lists every robot with 100 services",
-            lambda: sorted(len(x["services"]) for x in clients[0].neighbors()) == [100] * (n - 1),
+            lambda: sorted(len(x["services"]) for x in first.neighbors()) == [100] * (n - 1),
             30,
         )
-        for c in clients:
-            c.close()
+        supervisor = json.loads((lab.robot("r1").state_dir / "layers.json").read_text())
         return {
             "robots": n,
             "modes": {
-                mode: measure(fleet, procs[0].pid, args, interval)
+                mode: measure(lab, int(supervisor["supervisor"]), args, interval)
                 for mode, interval in (("paced", args.poll_interval), ("closed_loop", 0.0))
             },
         }
 
 
-def measure(fleet: NsFleet, daemon_pid: int, args: argparse.Namespace, interval: float) -> Any:
+def measure(lab: Lab, daemon_pid: int, args: argparse.Namespace, interval: float) -> Any:
     """Run the load generator inside robot 1; add the daemon's CPU and memory meanwhile."""
     cpu0, _ = cpu_and_rss(proc_tree(daemon_pid))
     rss_peak = 0
@@ -159,8 +133,8 @@ def measure(fleet: NsFleet, daemon_pid: int, args: argparse.Namespace, interval:
     sampler = threading.Thread(target=sample)
     sampler.start()
     try:
-        res = fleet.exec(
-            1,
+        res = lab.exec(
+            "r1",
             [
                 sys.executable,
                 "-m",
