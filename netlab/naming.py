@@ -34,6 +34,16 @@ ROBOT_NAME_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,11}$")
 MAC_RE = re.compile(r"^[0-9a-f]{2}(:[0-9a-f]{2}){5}$")
 
 
+def b36(n: int, width: int = 1) -> str:
+    """`n` (>= 0) in base 36, lower case, zero-padded to `width`: compact unique names."""
+    digits = "0123456789abcdefghijklmnopqrstuvwxyz"
+    out = ""
+    while n or len(out) < width:
+        n, rem = divmod(n, 36)
+        out = digits[rem] + out
+    return out
+
+
 def check_lab_name(name: str) -> str:
     """Return `name`, or raise LabNameError saying what a lab name may be."""
     if not LAB_NAME_RE.match(name):

@@ -1676,20 +1676,11 @@ class RunResult:
 
 
 _lab_counter = itertools.count()
-_B36 = "0123456789abcdefghijklmnopqrstuvwxyz"
-
-
-def _b36(n: int, width: int = 1) -> str:
-    out = ""
-    while n or len(out) < width:
-        n, rem = divmod(n, 36)
-        out = _B36[rem] + out
-    return out
 
 
 def default_lab_name() -> str:
     """'s' + this process (4 base-36 digits) + a counter: unique on this machine for a while."""
-    return f"s{_b36(os.getpid() % 36**4, 4)}{_b36(next(_lab_counter) % 36**3)}"
+    return f"s{naming.b36(os.getpid() % 36**4, 4)}{naming.b36(next(_lab_counter) % 36**3)}"
 
 
 def _new_run_dir(runs: Path, name: str) -> Path:

@@ -30,15 +30,6 @@ DEFAULT_BEACON = 0.5
 SKIP_REASON = "needs root and network namespaces (CI runs as root)"
 
 _counter = itertools.count()
-_B36 = "0123456789abcdefghijklmnopqrstuvwxyz"
-
-
-def _b36(n: int, width: int = 1) -> str:
-    out = ""
-    while n or len(out) < width:
-        n, rem = divmod(n, 36)
-        out = _B36[rem] + out
-    return out
 
 
 def unique_lab_name() -> str:
@@ -46,7 +37,7 @@ def unique_lab_name() -> str:
     machine while the process runs; names whose namespaces exist are skipped."""
     taken = kernel.list_ns(naming.NS_PREFIX) if os.geteuid() == 0 else []
     while True:
-        name = f"f{_b36(os.getpid() % 36**4, 4)}{_b36(next(_counter) % 36**3)}"
+        name = f"f{naming.b36(os.getpid() % 36**4, 4)}{naming.b36(next(_counter) % 36**3)}"
         if not any(ns.startswith(naming.prefix(name)) for ns in taken):
             return name
 

@@ -36,6 +36,8 @@ from typing import Any
 
 from pyroute2 import IPRoute, netns
 
+from netlab.naming import b36
+
 PREFIX = "sdfr"
 ROBOT_IFACE = "eth0"
 BRIDGE = "br0"
@@ -45,17 +47,6 @@ _RT_SCOPE_LINK = 253
 
 _counter = itertools.count()
 _counter_lock = threading.Lock()
-
-
-def _b36(value: int, width: int = 0) -> str:
-    digits = "0123456789abcdefghijklmnopqrstuvwxyz"
-    out = ""
-    while True:
-        value, rem = divmod(value, 36)
-        out = digits[rem] + out
-        if value == 0:
-            break
-    return out.rjust(width, "0")
 
 
 def name_pid(name: str) -> int | None:
@@ -76,7 +67,7 @@ def unique_name() -> str:
     while True:
         with _counter_lock:
             count = next(_counter)
-        name = f"{PREFIX}{_b36(os.getpid(), 5)}{_b36(count)}"
+        name = f"{PREFIX}{b36(os.getpid(), 5)}{b36(count)}"
         if not any(ns == f"{name}-air" or ns.startswith(f"{name}-r") for ns in taken):
             return name
 
