@@ -15,28 +15,12 @@ from typing import Any
 import pytest
 
 from sdfr.client import Client
-from sdfr.errors import ApiError
 from tests.nsfleet import NsFleet
+from tests.waiting import poll
 
 pytestmark = pytest.mark.root
 
 BEACON = 1.0
-
-
-def poll(what: str, pred: Callable[[], Any], timeout: float, step: float = 0.02) -> float:
-    """Wait until `pred()` is truthy; return how long it took, or fail saying what was awaited."""
-    start = time.monotonic()
-    last: Any = None
-    while True:
-        try:
-            last = pred()
-        except ApiError as exc:
-            last = exc
-        if last and not isinstance(last, Exception):
-            return time.monotonic() - start
-        if time.monotonic() - start > timeout:
-            pytest.fail(f"{what}: not within {timeout} s (last: {last!r})")
-        time.sleep(step)
 
 
 class Robots:

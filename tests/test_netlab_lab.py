@@ -9,7 +9,6 @@ import selectors
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ from netlab.errors import KernelError, LabExistsError, ShapingUnsupported
 from netlab.lab import Lab
 from netlab.mobility import RandomWaypoint
 from netlab.ranges import Topology, UnitDisc
-from sdfr.errors import ApiError
+from tests.waiting import poll
 
 pytestmark = pytest.mark.root
 
@@ -486,22 +485,6 @@ time.sleep(600)
 # -- the real daemon -------------------------------------------------------------------------
 
 BEACON = 0.5
-
-
-def poll(what: str, pred: Callable[[], Any], timeout: float, step: float = 0.05) -> float:
-    """Wait until `pred()` is truthy; how long it took, or fail saying what was awaited."""
-    start = time.monotonic()
-    last: Any = None
-    while True:
-        try:
-            last = pred()
-        except ApiError as exc:
-            last = exc
-        if last and not isinstance(last, Exception):
-            return time.monotonic() - start
-        if time.monotonic() - start > timeout:
-            pytest.fail(f"{what}: not within {timeout} s (last: {last!r})")
-        time.sleep(step)
 
 
 def test_daemons_follow_partition_and_merge(make_lab: Callable[..., Lab]) -> None:
