@@ -538,7 +538,8 @@ class Core:
         if not peer.reachable:
             peer.reachable = True
             self.arrivals += 1
-            peer.pings.clear()
+            # The ping window is kept: the pings lost while the peer was away are part of its
+            # link's record, and the window slides them out as new pings settle.
             peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
             self._dirty.add(peer.robot_id)
         return peer

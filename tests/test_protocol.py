@@ -115,6 +115,27 @@ def test_silent_death_unreachable_within_3_beacons_indicator_falls() -> None:
     assert len(peer.services) == 100
 
 
+def test_indicator_keeps_the_pings_lost_in_an_outage_and_recovers() -> None:
+    net = SimNet(seed=18)
+    names = fleet(net, 2, n_services=2)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(6 * BEACON)
+    assert net.nodes["r1"].core.peers["r2"].indicator == 1.0
+    net.partition(["r1"], ["r2"])
+    net.wait_until(lambda: not net.sees("r1", "r2"), 3 * BEACON + 0.5)
+    net.run_for(BEACON)
+    fallen = net.nodes["r1"].core.peers["r2"].indicator
+    assert fallen is not None and fallen < 1.0
+    net.merge()
+    net.wait_until(lambda: net.sees("r1", "r2"), 2 * BEACON)
+    # Back in range, the window still holds the pings lost while apart: the indicator starts
+    # from there and climbs as new pings succeed, rather than jumping back to 1.0.
+    peer = net.nodes["r1"].core.peers["r2"]
+    assert peer.indicator == fallen
+    net.run_for(3 * BEACON)
+    assert peer.indicator is not None and fallen < peer.indicator < 1.0
+
+
 def test_partition_and_merge_no_refetch_no_ghosts() -> None:
     net = SimNet(seed=9)
     names = fleet(net, 6)
