@@ -606,6 +606,11 @@ class Lab:
         proc = self._daemons.get(self.robot(ref).name)
         return proc is not None and proc.poll() is None
 
+    def daemon_pid(self, ref: RobotRef) -> int | None:
+        """The pid of the robot's running sdfrd supervisor (its layers are its children)."""
+        proc = self._daemons.get(self.robot(ref).name)
+        return proc.pid if proc is not None and proc.poll() is None else None
+
     def stop(self, ref: RobotRef, timeout: float = STOP_TIMEOUT) -> int:
         """SIGTERM: a graceful stop (sdfrd says Byebye); its exit status."""
         robot = self.robot(ref)

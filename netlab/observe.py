@@ -30,6 +30,7 @@ from sdfr.errors import ApiError
 __all__ = [
     "AgreementStats",
     "ClientLike",
+    "FlapStats",
     "Observer",
     "PeerEntry",
     "Probe",
@@ -41,8 +42,11 @@ __all__ = [
     "agreement",
     "connectivity",
     "expect_problems",
+    "flaps",
     "fmt_set",
     "history_problems",
+    "indicator_problems",
+    "indicators_before",
     "unreachable_problems",
 ]
 
@@ -255,21 +259,31 @@ def _in_force(
 
 @dataclass(frozen=True, slots=True)
 class Sample:
-    """What the robots listed as reachable at `time` (robots that could not be asked: absent)."""
+    """What the robots listed as reachable at `time` (robots that could not be asked: absent),
+    and (`indicators`) the connection indicator each gave each peer it listed."""
 
     time: float
     seen: Mapping[str, frozenset[str]]
+    indicators: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "time": self.time,
             "seen": {a: natural_order(list(s)) for a, s in self.seen.items()},
         }
+        if self.indicators:
+            out["indicators"] = {a: dict(sorted(i.items())) for a, i in self.indicators.items()}
+        return out
 
     @classmethod
     def from_json(cls, obj: Mapping[str, Any]) -> Sample:
         seen = obj.get("seen") or {}
-        return cls(float(obj["time"]), {str(a): frozenset(map(str, s)) for a, s in seen.items()})
+        ind = obj.get("indicators") or {}
+        return cls(
+            float(obj["time"]),
+            {str(a): frozenset(map(str, s)) for a, s in seen.items()},
+            {str(a): {str(b): float(v) for b, v in i.items()} for a, i in ind.items()},
+        )
 
 
 class Observer:
@@ -316,8 +330,13 @@ class Observer:
             running = natural_order(list(self.truth.now().running))
             views = self.probe.neighbours(running)
             seen = {a: v.reachable for a, v in views.items() if v.error is None}
+            indicators = {
+                a: {e.robot_id: e.indicator for e in v.entries if e.indicator is not None}
+                for a, v in views.items()
+                if v.error is None
+            }
             with self._lock:
-                self._samples.append(Sample(t, seen))
+                self._samples.append(Sample(t, seen, indicators))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -397,9 +416,11 @@ def history_problems(
     *,
     reachable: bool | None = None,
     indicator_below: float | None = None,
+    fell_from: Mapping[str, Mapping[str, float]] | None = None,
 ) -> list[str]:
     """Each of `on` holds every one of `robots` in its history map (as reachable or not, and
-    with its connection indicator below a bound, when asked)."""
+    with its connection indicator below a bound, when asked); with `fell_from` (robot -> peer
+    -> indicator seen earlier), each indicator must have fallen below that earlier value."""
     wanted = natural_order(list(set(robots)))
     problems: list[str] = []
     for robot in natural_order(list(on)):
@@ -423,6 +444,43 @@ def history_problems(
                 problems.append(
                     f"{robot} rates {peer} at indicator {entry.indicator}, "
                     f"not below {indicator_below:g}"
+                )
+            if fell_from is not None:
+                was = fell_from.get(robot, {}).get(peer)
+                if was is None:
+                    problems.append(f"no indicator of {robot} for {peer} was sampled before")
+                elif not (entry.indicator is not None and entry.indicator < was):
+                    problems.append(
+                        f"{robot}'s indicator for {peer} did not fall: {entry.indicator} "
+                        f"now, {was:g} before"
+                    )
+    return _summary(problems)
+
+
+def indicator_problems(
+    views: Mapping[str, View], rates: Mapping[Pair, float], tolerance: float
+) -> list[str]:
+    """Each robot's connection indicator for each peer it lists is within `tolerance` of
+    `rates[(robot, peer)]`, the share of its pings to that peer that can come back (the ping
+    and its reply both cross the medium)."""
+    problems: list[str] = []
+    for robot in natural_order(list(views)):
+        view = views[robot]
+        if view.error is not None:
+            problems.append(f"{robot}: {view.error}")
+            continue
+        for peer in natural_order(list(view.reachable)):
+            rate = rates.get((robot, peer))
+            if rate is None:
+                continue
+            entry = view.entry(peer)
+            ind = entry.indicator if entry is not None else None
+            if ind is None:
+                problems.append(f"{robot} has no indicator for {peer} yet")
+            elif abs(ind - rate) > tolerance:
+                problems.append(
+                    f"{robot} rates {peer} at {ind:.2f}, the medium delivers {rate:.2f} "
+                    f"round trip (allowed: +-{tolerance:g})"
                 )
     return _summary(problems)
 
@@ -561,6 +619,99 @@ def agreement(
         per_sample=per_sample,
         worst=worst,
     )
+
+
+@dataclass(frozen=True, slots=True)
+class FlapStats:
+    """Flaps over a window of samples: a flap is a peer the medium kept linked that a robot
+    listed in one sample and not in the next one it answered.
+
+    pairs: (robot, peer) pairs watched; flaps: in all; most: the most flaps of one pair within
+    any `per` seconds; worst: (robot, peer, flaps), most first; at: robot -> peer -> times.
+    """
+
+    samples: int
+    pairs: int
+    flaps: int
+    most: int
+    per: float
+    worst: list[tuple[str, str, int]] = field(default_factory=list)
+    at: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "samples": self.samples,
+            "pairs": self.pairs,
+            "flaps": self.flaps,
+            "most_per_window": self.most,
+            "window_s": self.per,
+            "worst": [list(w) for w in self.worst[:MAX_PROBLEMS]],
+        }
+
+
+def flaps(
+    samples: Iterable[Sample],
+    truth: Sequence[TruthState],
+    *,
+    per: float = 60.0,
+    start: float = float("-inf"),
+    end: float = float("inf"),
+) -> FlapStats:
+    """Count flaps in [start, end] (see `FlapStats`): a drop counts only when the medium linked
+    the pair and both daemons ran throughout, from the earlier sample to the later one."""
+    states = sorted(truth, key=lambda s: s.time)
+    times = [s.time for s in states]
+    last: dict[str, tuple[float, frozenset[str]]] = {}
+    at: dict[tuple[str, str], list[float]] = defaultdict(list)
+    watched: set[tuple[str, str]] = set()
+    n = 0
+    for sample in sorted(samples, key=lambda s: s.time):
+        if not start <= sample.time <= end:
+            continue
+        n += 1
+        for robot, listed in sample.seen.items():
+            before = last.get(robot)
+            last[robot] = (sample.time, listed)
+            if before is None:
+                continue
+            window = _in_force(states, times, before[0], sample.time)
+            for peer in before[1]:
+                if not window or not all(s.hears(robot, peer) for s in window):
+                    continue
+                watched.add((robot, peer))
+                if peer not in listed:
+                    at[(robot, peer)].append(sample.time)
+    most = 0
+    for ts in at.values():
+        lo = 0
+        for hi, t in enumerate(ts):
+            while t - ts[lo] >= per:
+                lo += 1
+            most = max(most, hi - lo + 1)
+    worst = sorted(((a, b, len(ts)) for (a, b), ts in at.items()), key=lambda w: (-w[2], w[:2]))
+    table: dict[str, dict[str, list[float]]] = defaultdict(dict)
+    for (a, b), ts in at.items():
+        table[a][b] = ts
+    return FlapStats(
+        samples=n,
+        pairs=len(watched),
+        flaps=sum(len(ts) for ts in at.values()),
+        most=most,
+        per=per,
+        worst=worst,
+        at=dict(table),
+    )
+
+
+def indicators_before(samples: Sequence[Sample], t: float) -> dict[str, dict[str, float]]:
+    """Each robot's latest indicator for each peer from the samples taken before `t`."""
+    out: dict[str, dict[str, float]] = defaultdict(dict)
+    for sample in sorted(samples, key=lambda s: s.time):
+        if sample.time >= t:
+            break
+        for robot, ind in sample.indicators.items():
+            out[robot].update(ind)
+    return dict(out)
 
 
 def connectivity(

@@ -72,7 +72,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 from netlab import naming
-from netlab.analysis import count_updates, read_run
+from netlab.analysis import count_updates, natural_order, read_run
 from netlab.errors import NetlabError
 from netlab.mobility import HALL, RandomWaypoint
 from netlab.observe import (
@@ -86,8 +86,11 @@ from netlab.observe import (
     agreement,
     connectivity,
     expect_problems,
+    flaps,
     fmt_set,
     history_problems,
+    indicator_problems,
+    indicators_before,
     unreachable_problems,
 )
 from netlab.ranges import Pos, RangeModel, UnitDisc
@@ -103,7 +106,9 @@ __all__ = [
     "Condition",
     "DistinctAddresses",
     "Duration",
+    "Flaps",
     "InHistory",
+    "Indicator",
     "Kill",
     "LabLike",
     "LabSpec",
@@ -115,6 +120,7 @@ __all__ = [
     "Partition",
     "Publish",
     "Quality",
+    "Resources",
     "Restart",
     "RunResult",
     "Scenario",
@@ -423,12 +429,14 @@ class InHistory(Condition):
     on: Robots | None = None
     reachable: bool | None = None
     indicator_below: float | None = None
+    falling: bool = False
     kind: ClassVar[str] = "history"
 
     def describe(self) -> str:
         state = {None: "", True: " as reachable", False: " as unreachable"}[self.reachable]
+        fell = ", indicator fallen since the last step" if self.falling else ""
         return f"{_sel_text(self.robots)} in the history of {_sel_text(self.on, 'every peer')}" + (
-            state
+            state + fell
         )
 
     def _validate(self, ctx: _Ctx) -> None:
@@ -439,6 +447,7 @@ class InHistory(Condition):
             _check_field("reachable", lambda: _boolean(self.reachable))
         if self.indicator_below is not None:
             _number(self.indicator_below, "indicator_below", 0.0, 1.0)
+        _check_field("falling", lambda: _boolean(self.falling))
 
 
 @dataclass(frozen=True)
@@ -514,9 +523,94 @@ class Updates(Condition):
             raise _Bad(f"at_most: must be >= 0, got {self.at_most}")
 
 
+@dataclass(frozen=True)
+class Flaps(Condition):
+    """No robot drops a peer the medium keeps linked more than `at_most` times within any `per`
+    (a flap: listed in one sample of the observer, not in the next), over the window of step
+    `over` (a label or a step kind; default: the last action step).  Judged once, from the
+    observer's samples, so a flap shorter than the sample period may go unseen."""
+
+    at_most: int = 1
+    per: Span = "1 min"
+    over: str | None = None
+    kind: ClassVar[str] = "flaps"
+    polled: ClassVar[bool] = False
+
+    def describe(self) -> str:
+        over = f" over {self.over}" if self.over else ""
+        return f"no peer flaps out more than {self.at_most} per {Duration.of(self.per)}{over}"
+
+    def _validate(self, ctx: _Ctx) -> None:
+        if isinstance(self.at_most, bool) or not isinstance(self.at_most, int):
+            raise _Bad(f"at_most: expected a whole number, got {self.at_most!r}")
+        if self.at_most < 0:
+            raise _Bad(f"at_most: must be >= 0, got {self.at_most}")
+        _check_field("per", lambda: Duration.of(self.per))
+
+
+@dataclass(frozen=True)
+class Indicator(Condition):
+    """Each running robot of `robots` rates every peer it lists within `tolerance` (0-1) of
+    the share of pings the medium lets come back: (1 - loss there) x (1 - loss back)."""
+
+    robots: Robots = "running"
+    tolerance: float = 0.15
+    kind: ClassVar[str] = "indicator"
+
+    def describe(self) -> str:
+        return (
+            f"{_sel_text(self.robots)}: indicators within {self.tolerance * 100:g} points of "
+            "the medium's round-trip delivery"
+        )
+
+    def _validate(self, ctx: _Ctx) -> None:
+        _check_field("robots", lambda: ctx.robots(self.robots))
+        _number(self.tolerance, "tolerance", 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Resources(Condition):
+    """What each daemon (sdfrd and its two layers) used over the window of step `over`: CPU as
+    % of one core, and memory (PSS, MiB) at its end; at most `cpu_at_most` / `pss_at_most`
+    per daemon when given.  Judged once, from /proc readings at the start and end of that
+    step; the numbers go to the report."""
+
+    over: str | None = None
+    cpu_at_most: float | None = None
+    pss_at_most: float | None = None
+    kind: ClassVar[str] = "resources"
+    polled: ClassVar[bool] = False
+
+    def describe(self) -> str:
+        limits = []
+        if self.cpu_at_most is not None:
+            limits.append(f"CPU <= {self.cpu_at_most:g} %")
+        if self.pss_at_most is not None:
+            limits.append(f"PSS <= {self.pss_at_most:g} MiB")
+        over = f" over {self.over}" if self.over else ""
+        return f"CPU and memory per daemon{over}" + (f": {', '.join(limits)}" if limits else "")
+
+    def _validate(self, ctx: _Ctx) -> None:
+        if self.cpu_at_most is not None:
+            _number(self.cpu_at_most, "cpu_at_most", 0.0)
+        if self.pss_at_most is not None:
+            _number(self.pss_at_most, "pss_at_most", 0.0)
+
+
 CONDITIONS: dict[str, type[Condition]] = {
     c.kind: c
-    for c in (Lists, Medium, Unreachable, InHistory, DistinctAddresses, Agreement, Updates)
+    for c in (
+        Lists,
+        Medium,
+        Unreachable,
+        InHistory,
+        DistinctAddresses,
+        Agreement,
+        Updates,
+        Flaps,
+        Indicator,
+        Resources,
+    )
 }
 
 
@@ -1051,7 +1145,7 @@ class Scenario:
                     labels.add(step.label)
                 step._validate(ctx)
                 cond = step.condition if isinstance(step, Check) else None
-                if isinstance(cond, Agreement):
+                if isinstance(cond, Agreement | Flaps | Resources):
                     _refers(self.steps, i, "over", cond.over)
                 if isinstance(cond, Updates):
                     _refers(self.steps, i, "after", cond.after)
@@ -1231,6 +1325,7 @@ def _parse_condition(kind: str, f: _Fields) -> Condition:
             on=f.take("on", _c_robots, None),
             reachable=f.take("reachable", _c_bool, None),
             indicator_below=f.take("indicator_below", _c_float, None),
+            falling=f.take("falling", _c_bool, False),
         )
     if kind == "addresses":
         return DistinctAddresses(robots=f.take("robots", _c_robots, "running"))
@@ -1244,6 +1339,23 @@ def _parse_condition(kind: str, f: _Fields) -> Condition:
         )
     if kind == "updates":
         return Updates(at_most=f.take("at_most", _c_int, 0), after=f.take("after", _c_str, None))
+    if kind == "flaps":
+        return Flaps(
+            at_most=f.take("at_most", _c_int, 1),
+            per=f.take("per", _c_span, "1 min"),
+            over=f.take("over", _c_str, None),
+        )
+    if kind == "indicator":
+        return Indicator(
+            robots=f.take("robots", _c_robots, "running"),
+            tolerance=f.take("tolerance", _c_float, 0.15),
+        )
+    if kind == "resources":
+        return Resources(
+            over=f.take("over", _c_str, None),
+            cpu_at_most=f.take("cpu_at_most", _c_float, None),
+            pss_at_most=f.take("pss_at_most", _c_float, None),
+        )
     raise _Bad(f"unknown condition {kind!r} (one of {', '.join(CONDITIONS)})")
 
 
@@ -1793,6 +1905,14 @@ class _Run:
         self.samples: list[Sample] = []
         self.captured = False
         self.wall = (time.time(), time.time())
+        self.action_wall = time.time()  # start of the last action step (wall clock)
+        #: Steps whose window a resources check measures -> readings at its start and end.
+        self.measured = {
+            _reference(sc.steps, i, s.condition.over)
+            for i, s in enumerate(sc.steps, 1)
+            if isinstance(s, Check) and isinstance(s.condition, Resources)
+        }
+        self.usage: dict[int, tuple[dict[str, Any], dict[str, Any]]] = {}
 
     # -- output ------------------------------------------------------------------------------
 
@@ -1929,8 +2049,12 @@ class _Run:
                 if isinstance(step, Check):
                     ok = self._check(i, step)
                 else:
+                    self.action_wall = wall
+                    before = self._usage() if i in self.measured else None
                     self.say(self._act(step))
                     self.event = time.monotonic()
+                    if before is not None:
+                        self.usage[i] = (before, self._usage())
                     ok = True
             except (NetlabError, ApiError, _Bad) as exc:
                 self.error = f"{_step_ref(i, step)}: {exc}"
@@ -1946,6 +2070,22 @@ class _Run:
         # A robot's own link loss can add up to 100 %: no datagram passes, so no link.
         links = [pair for pair, loss in self.lab.links().items() if loss < 100.0]
         return self.truth.record(links, self.running)
+
+    def _usage(self) -> dict[str, Any]:
+        """A /proc reading of each running daemon's process tree (empty when the lab cannot
+        tell its daemons' pids)."""
+        pid_of = getattr(self.lab, "daemon_pid", None)
+        if pid_of is None:
+            return {}
+        from netlab import procstat
+
+        kids = procstat.children()
+        out: dict[str, Any] = {}
+        for name in self.running:
+            pid = pid_of(name)
+            if pid is not None:
+                out[name] = procstat.Usage.read(procstat.tree(pid, kids))
+        return out
 
     def _names(self, sel: Robots) -> tuple[str, ...]:
         return self.ctx.robots(sel, self.running)
@@ -2140,6 +2280,10 @@ class _Run:
         self.checks.append(res)
         if isinstance(cond, Agreement):
             self._agreement(index, step, cond, res)
+        elif isinstance(cond, Flaps):
+            self._flaps(index, cond, res)
+        elif isinstance(cond, Resources):
+            self._resources(index, cond, res)
         elif isinstance(cond, Updates):
             ref = _reference(self.sc.steps, index, cond.after)
             if not self.captured:
@@ -2153,6 +2297,8 @@ class _Run:
             return True
         else:
             self._poll(step, res)
+            if isinstance(cond, Indicator):
+                self._indicator_data(cond, res)
         return res.ok is not False
 
     def _poll(self, step: Check, res: CheckResult) -> None:
@@ -2249,17 +2395,148 @@ class _Run:
             kept = self._names(cond.robots)
             on = self._names(cond.on) if cond.on is not None else self.running
             on = [r for r in on if r in running and r not in kept]
+            fell_from = None
+            if cond.falling:
+                assert self.observer is not None
+                fell_from = indicators_before(self.observer.samples, self.action_wall)
             return history_problems(
                 probe.histories(on),
                 kept,
                 on,
                 reachable=cond.reachable,
                 indicator_below=cond.indicator_below,
+                fell_from=fell_from,
             )
+        if isinstance(cond, Indicator):
+            robots = [r for r in self._names(cond.robots) if r in running]
+            return indicator_problems(probe.neighbours(robots), self._rates(), cond.tolerance)
         if isinstance(cond, DistinctAddresses):
             robots = [r for r in self._names(cond.robots) if r in running]
             return address_problems(probe.neighbours(robots), probe.addresses(robots))
         raise AssertionError(f"{cond.kind} is not polled")
+
+    def _rates(self) -> dict[tuple[str, str], float]:
+        """(robot, peer) -> the share of robot's pings to peer the medium lets come back."""
+        links = self.lab.links()  # (sender, receiver) -> loss in %
+        return {
+            (a, b): (1 - loss / 100.0) * (1 - links[(b, a)] / 100.0)
+            for (a, b), loss in links.items()
+            if (b, a) in links
+        }
+
+    def _indicator_data(self, cond: Indicator, res: CheckResult) -> None:
+        assert self.probe is not None
+        robots = [r for r in self._names(cond.robots) if r in self.running]
+        rates = self._rates()
+        seen: dict[str, dict[str, float | None]] = {}
+        errors: list[float] = []
+        for robot, view in self.probe.neighbours(robots).items():
+            seen[robot] = {}
+            for peer in natural_order(list(view.reachable)):
+                entry = view.entry(peer)
+                ind = entry.indicator if entry is not None else None
+                seen[robot][peer] = ind
+                if ind is not None and (robot, peer) in rates:
+                    errors.append(abs(ind - rates[(robot, peer)]))
+        values = sorted(rates.values())
+        res.data = {
+            "indicators": seen,
+            "medium_round_trip": {"min": values[0], "max": values[-1]} if values else None,
+            "abs_error": {
+                "mean": sum(errors) / len(errors),
+                "max": max(errors),
+                "pairs": len(errors),
+            }
+            if errors
+            else None,
+        }
+        if errors:
+            note = (
+                f"{len(errors)} pairs: |indicator - delivery| mean "
+                f"{sum(errors) / len(errors):.3f}, max {max(errors):.3f}"
+            )
+            res.detail = f"{res.detail}; {note}" if res.detail else note
+            self.say(f"      {note}")
+
+    def _flaps(self, index: int, cond: Flaps, res: CheckResult) -> None:
+        ref = _reference(self.sc.steps, index, cond.over)
+        start, end = self.windows[ref]
+        per = seconds(cond.per, self.sc.beacon)
+        assert self.observer is not None
+        stats = flaps(self.observer.samples, self.truth.states(), per=per, start=start, end=end)
+        res.at = time.monotonic() - self.t0
+        res.data = {"flaps": stats.to_json(), "over_step": ref}
+        minutes = (end - start) / 60.0
+        res.detail = (
+            f"{stats.flaps} flaps among {stats.pairs} linked pairs in {minutes:.1f} min "
+            f"({stats.samples} samples every {self.sc.sample:g} s); at most {stats.most} of one "
+            f"pair within {per:g} s (allowed {cond.at_most})"
+        )
+        if stats.samples < 2:
+            res.ok = False
+            res.detail = f"fewer than 2 samples in the window of step {ref}: cannot tell"
+        else:
+            res.ok = stats.most <= cond.at_most
+            if not res.ok:
+                worst = ", ".join(
+                    f"{a} dropped {b} {n} times (at "
+                    + ", ".join(f"{t - start:.1f}" for t in stats.at[a][b][:5])
+                    + " s)"
+                    for a, b, n in stats.worst[:3]
+                )
+                res.detail += f"; worst: {worst}"
+        self.say(f"{'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
+
+    def _resources(self, index: int, cond: Resources, res: CheckResult) -> None:
+        from netlab import procstat
+
+        ref = _reference(self.sc.steps, index, cond.over)
+        res.at = time.monotonic() - self.t0
+        before, after = self.usage.get(ref, ({}, {}))
+        per = {
+            r: procstat.window(before[r], after[r])
+            for r in natural_order(list(before))
+            if r in after and after[r].processes
+        }
+        if not per:
+            res.detail = "no /proc readings of the daemons (lab without pids): not judged"
+            self.say(f"skip  {res.description}: {res.detail}")
+            return
+        cpu = [u["cpu_percent"] for u in per.values()]
+        pss = [u["pss_mib"] for u in per.values()]
+        rss = [u["rss_mib"] for u in per.values()]
+        wall = max(u["wall_s"] for u in per.values())
+        res.data = {
+            "over_step": ref,
+            "daemons": len(per),
+            "cpu_percent": {"mean": sum(cpu) / len(cpu), "max": max(cpu), "total": sum(cpu)},
+            "pss_mib": {"mean": sum(pss) / len(pss), "max": max(pss), "total": sum(pss)},
+            "rss_mib": {"mean": sum(rss) / len(rss), "max": max(rss)},
+            "per_daemon": per,
+        }
+        res.detail = (
+            f"{len(per)} daemons over {wall:.0f} s: CPU {sum(cpu) / len(cpu):.2f} % of one core "
+            f"on average (max {max(cpu):.2f} %, all {sum(cpu):.0f} %); PSS "
+            f"{sum(pss) / len(pss):.1f} MiB on average (max {max(pss):.1f}, all "
+            f"{sum(pss):.0f} MiB), RSS {sum(rss) / len(rss):.1f} MiB"
+        )
+        over = []
+        if cond.cpu_at_most is not None:
+            over += [
+                f"{r} used {u['cpu_percent']:.1f} % CPU"
+                for r, u in per.items()
+                if u["cpu_percent"] > cond.cpu_at_most
+            ]
+        if cond.pss_at_most is not None:
+            over += [
+                f"{r} took {u['pss_mib']:.1f} MiB"
+                for r, u in per.items()
+                if u["pss_mib"] > cond.pss_at_most
+            ]
+        res.ok = not over
+        if over:
+            res.detail += "; over the limit: " + ", ".join(over[:6])
+        self.say(f"{'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
 
     def _agreement(self, index: int, step: Check, cond: Agreement, res: CheckResult) -> None:
         ref = _reference(self.sc.steps, index, cond.over)

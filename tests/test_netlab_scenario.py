@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import threading
 from collections.abc import Iterator, Mapping
 from dataclasses import replace
@@ -293,8 +294,8 @@ def test_the_bundled_scenarios_load() -> None:
     for name, path in bundled().items():
         sc = load(path)
         assert sc.name == name
-        assert sc.beacon == 1.0  # short beacons, said so in each file
-        assert "product default is 10 s" in path.read_text()
+        if sc.beacon != 10.0:  # the product's, or short beacons said so in the file
+            assert sc.beacon == 1.0 and "product default is 10 s" in path.read_text()
     assert find("mobility") == bundled()["mobility"]
     with pytest.raises(ScenarioError, match="no bundled scenario of that name"):
         find("nosuch")
@@ -519,6 +520,7 @@ class FakeLab:
         self.heard: dict[str, set[str]] = {}
         self.blind: set[tuple[str, str]] = set()
         self.calls: list[tuple[Any, ...]] = []
+        self.bias: dict[tuple[str, str], float] = {}
         self.lock = threading.Lock()
         self.state = "new"
 
@@ -594,6 +596,9 @@ class FakeLab:
     def links(self) -> dict[tuple[str, str], float]:
         return self.topology.links()
 
+    def daemon_pid(self, ref: str) -> int | None:
+        return os.getpid() if ref in self.running else None  # the test itself, for /proc
+
     def positions(self) -> dict[str, Pos]:
         return dict(self.topology.positions)
 
@@ -615,7 +620,21 @@ class FakeClient:
     def _entry(self, peer: str, reachable: bool) -> dict[str, Any]:
         services = [{"name": n} for n in self.lab.services[peer].values()]
         address = f"10.1.0.{list(self.lab.robots).index(peer) + 1}"
-        return {"robot_id": peer, "reachable": reachable, "address": address, "services": services}
+        # The indicator: the medium's round-trip delivery (+ a test's bias); half of it once
+        # the peer is gone (its last pings were lost).
+        links = self.lab.links()
+        there, back = links.get((self.robot, peer)), links.get((peer, self.robot))
+        ind = None
+        if there is not None and back is not None:
+            ind = (1 - there / 100) * (1 - back / 100) + self.lab.bias.get((self.robot, peer), 0)
+            ind = ind if reachable else ind / 2
+        return {
+            "robot_id": peer,
+            "reachable": reachable,
+            "address": address,
+            "services": services,
+            "indicator": ind,
+        }
 
     def neighbors(self, include_unreachable: bool = False) -> list[dict[str, Any]]:
         return [self._entry(p, True) for p in sorted(self.lab.listing(self.robot))]
