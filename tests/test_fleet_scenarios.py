@@ -1,0 +1,95 @@
+"""Issue 4's fleet behaviours that need time, loss or many robots: the bundled scenarios, run
+on real sdfrd daemons in netlab, as `netlab run NAME` runs them.
+
+* silent-departure (check 4): kill -9 and a cut link: unreachable on every peer within 3
+  beacon periods, kept in history with the connection indicator fallen; both come back;
+* partition-merge (check 5): {r1,r2,r3} | {r4,r5,r6}; each side alone within 3 beacons; all
+  list all within 1 beacon + 1 s of the merge; no Update datagram in the captures after it;
+* lossy (check 7): 30 % loss on every pair: converges, no flap more than once a minute over
+  2 minutes, every indicator within 15 points of the round-trip delivery rate;
+* mobility (check 8): random waypoint, 6 robots, 2 minutes: the lists agree with the
+  medium's truth >= 95 % of the time with a 1-beacon lag;
+* scale-50 (check 10): 50 robots at the product's 10 s beacon converge and stay converged
+  for a minute; CPU and memory per daemon measured.
+
+A failed check says which robot missed what (the run's summary is the failure message), and
+the run folder -- pcaps of every robot and the medium, run.json, report.json, plots, daemon
+logs -- is kept under runs/tests/ for inspection; a passing run's folder is removed unless
+SDFR_KEEP_RUNS=1.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+
+from netlab import scenario
+
+pytestmark = pytest.mark.root
+
+RUNS = Path(__file__).resolve().parent.parent / "runs" / "tests"
+
+
+def run_bundled(name: str) -> scenario.RunResult:
+    """Run bundled scenario `name` in full; fail with its summary, keeping its folder."""
+    sc = scenario.load(scenario.find(name))
+    folder = RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+    result = scenario.run(sc, run_dir=folder, quick=False)
+    if result.status == "skipped":
+        pytest.fail(f"{name} was skipped: {result.reason}")
+    if not result.ok:
+        pytest.fail(
+            "\n".join([f"scenario {name} {result.status}:", *result.summary()])
+            + f"\nrun folder kept for inspection: {folder} (pcaps, run.json, report.json, logs/)",
+            pytrace=False,
+        )
+    if os.environ.get("SDFR_KEEP_RUNS") != "1":
+        shutil.rmtree(folder, ignore_errors=True)
+    return result
+
+
+def check(result: scenario.RunResult, kind: str) -> scenario.CheckResult:
+    found = [c for c in result.checks if c.kind == kind]
+    assert found, f"{result.scenario} has no {kind} check"
+    return found[-1]
+
+
+def test_silent_departure() -> None:
+    result = run_bundled("silent-departure")
+    kinds = [c.kind for c in result.checks]
+    assert kinds.count("unreachable") == 2 and kinds.count("history") == 2
+
+
+def test_partition_and_merge() -> None:
+    result = run_bundled("partition-merge")
+    updates = check(result, "updates")
+    assert updates.ok is True and updates.detail.startswith("0 Update datagrams"), updates.detail
+
+
+def test_thirty_percent_loss_on_every_pair() -> None:
+    result = run_bundled("lossy")
+    flaps = check(result, "flaps")
+    assert flaps.data["flaps"]["samples"] >= 300, flaps.detail  # two minutes, sampled
+    ind = check(result, "indicator")
+    assert ind.data["abs_error"]["pairs"] == 30, ind.data
+    print(f"lossy: {flaps.detail}; indicators: {ind.detail}")
+
+
+def test_random_waypoint_mobility_two_minutes() -> None:
+    result = run_bundled("mobility")
+    agree = next(c for c in result.checks if c.kind == "agreement")
+    share = agree.data["agreement"]["pair_share"]
+    assert share >= 0.95
+    print(f"mobility: agreement {share:.1%} with a 1-beacon lag ({agree.detail})")
+
+
+def test_fifty_robots_converge_and_stay_converged() -> None:
+    result = run_bundled("scale-50")
+    res = check(result, "resources")
+    assert res.ok is True and res.data["daemons"] == 50, res.detail
+    assert all(u["processes"] == 3 for u in res.data["per_daemon"].values()), res.data
+    print(f"scale-50: {res.detail}")
