@@ -2,16 +2,19 @@
 
 Runs, one after the other, with `netlab.scenario`: a static fleet of 6 robots (issue 4,
 check 1), partition and merge (check 5) and random-waypoint mobility (check 8, 30 s instead of
-2 minutes unless --full).  Each prints its progress and its checks, and writes a run folder
-under runs/ (pcaps, report.json, PNG plots, daemon logs); the demo ends with a table across
-scenarios.  Exit status 0 when every check of every scenario passed.
+2 minutes unless --full).  Each prints its progress and its checks, and writes its folder in
+the demo's run folder runs/netlab-<time>/ (pcaps, report.json, PNG plots, daemon logs); the
+demo ends with a table across scenarios, also written there as summary.json.  Exit status 0
+when every check of every scenario passed.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
 from netlab import scenario
@@ -44,16 +47,26 @@ def run(args: argparse.Namespace) -> int:
         flush=True,
     )
     t0 = time.monotonic()
+    folder = Path(args.runs) / f"netlab-{datetime.now():%Y%m%d-%H%M%S}"
     results = []
     for name in names:
         print("", flush=True)
         sc = scenario.load(scenario.find(name))
-        results.append(scenario.run(sc, runs=Path(args.runs), quick=quick))
+        results.append(scenario.run(sc, run_dir=folder / name, quick=quick))
+    took = time.monotonic() - t0
     print("")
     for line in summary(results, Path.cwd()):
         print(line)
     passed = sum(r.ok for r in results)
-    print(f"\n{passed} of {len(results)} scenarios passed in {time.monotonic() - t0:.0f} s")
+    print(f"\n{passed} of {len(results)} scenarios passed in {took:.0f} s")
+    record = {
+        "passed": passed == len(results),
+        "duration_s": round(took, 1),
+        "quick": quick,
+        "scenarios": [r.to_json() for r in results],
+    }
+    (folder / "summary.json").write_text(json.dumps(record, indent=1) + "\n")
+    print(f"reports: {folder}/<scenario>/report.json and *.png; summary: {folder}/summary.json")
     return 0 if passed == len(results) else 1
 
 
