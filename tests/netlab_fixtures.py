@@ -8,22 +8,31 @@
   ``@pytest.mark.fleet(n=3, beacon=0.5, ...)`` (defaults: 3 robots, beacon 0.5 s; other
   keywords go to `fleet_factory`).
 * ``fleet_factory(n=3, *, beacon=0.5, spacing=1.0, start=True, **lab_kw)``: fleets on demand.
+* ``captured(lab, name)``: a context manager capturing every robot of `lab` and its medium;
+  when the block fails, the pcaps are kept under runs/tests/ (the failure says where).
 
 Each skips the test unless we are root (the ``root`` marker does it too).
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import shutil
 from collections.abc import Callable, Iterator
+from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from netlab import cleanup, kernel, manifest, naming
+from netlab.capture import Capture, start_all, stop_all
 from netlab.lab import Lab
+
+#: Where a failed test's captures are kept.
+RUNS = Path(__file__).resolve().parent.parent / "runs" / "tests"
 
 DEFAULT_ROBOTS = 3
 DEFAULT_BEACON = 0.5
@@ -129,3 +138,34 @@ def fleet(request: pytest.FixtureRequest, fleet_factory: Callable[..., Lab]) -> 
     if marker is not None and marker.args:
         raise TypeError("write @pytest.mark.fleet(n=3, beacon=0.5) with keywords")
     return fleet_factory(**(marker.kwargs if marker is not None else {}))
+
+
+@contextlib.contextmanager
+def captured(lab: Lab, name: str) -> Iterator[Path]:
+    """tcpdump on every robot of `lab` (added so far) and on its medium while the block runs;
+    the pcaps are removed when it passes (unless SDFR_KEEP_RUNS=1) and kept, with the daemons'
+    logs, when it fails -- the failure's message gains the folder."""
+    folder = RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+    folder.mkdir(parents=True, exist_ok=True)
+    caps = [Capture(lab.medium.ns, naming.BRIDGE, folder / "medium.pcap", label="medium")]
+    caps += [
+        Capture(r.ns, naming.ROBOT_IFACE, folder / f"{r.name}.pcap", label=r.name)
+        for r in lab.robots.values()
+    ]
+    start_all(caps)
+    try:
+        yield folder
+    except BaseException as exc:
+        with contextlib.suppress(Exception):
+            stop_all(caps)
+        for r in lab.robots.values():
+            with contextlib.suppress(OSError):
+                shutil.copyfile(r.log, folder / f"{r.name}.log")
+        note = f"pcaps and daemon logs kept for inspection in {folder}"
+        if isinstance(exc, pytest.fail.Exception):
+            raise pytest.fail.Exception(f"{exc.msg}\n{note}", pytrace=exc.pytrace) from None
+        print(note)
+        raise
+    stop_all(caps)
+    if os.environ.get("SDFR_KEEP_RUNS") != "1":
+        shutil.rmtree(folder, ignore_errors=True)

@@ -3,11 +3,12 @@
 Start-up, join, graceful leave, service churn and reboot do not wait for beacons
 (Discovery on start, Update on change, Byebye on stop), so these run with the
 default beacon and the deadlines as written. A failed check says which robot
-missed what.
+missed what, and the pcaps of every robot and the medium are kept under runs/tests/.
 """
 
 from __future__ import annotations
 
+import shutil
 import time
 from collections.abc import Callable
 from typing import Any
@@ -18,6 +19,7 @@ from netlab.lab import Lab
 from sdfr.errors import ApiError
 from sdfr.model import Service
 from sdfr.store import Store
+from tests.netlab_fixtures import captured
 
 pytestmark = pytest.mark.root
 
@@ -77,6 +79,11 @@ def test_startup_join_leave_churn_reboot(lab: Lab) -> None:
     svc = services_of(names)
     for n in names:
         preload(lab, n, svc[n])
+    with captured(lab, "fleet-behaviour"):
+        behaviours(lab, names, svc)
+
+
+def behaviours(lab: Lab, names: list[str], svc: dict[str, set[str]]) -> None:
 
     # 1. Start-up: six robots started together list each other, with services, within 2 s
     #    of the fleet being up (by Discovery on start: the next beacon is 10 s away).
@@ -127,3 +134,26 @@ def test_startup_join_leave_churn_reboot(lab: Lab) -> None:
         a: {r["robot_id"]: r["boot_id"] for r in lab.client(a).history()}["r1"] for a in rest[1:]
     }
     assert set(boots.values()) == {2}, boots
+
+
+def test_a_failed_check_says_who_missed_what_and_keeps_the_pcaps(lab: Lab) -> None:
+    from netlab.analysis import read_pcap
+
+    lab.add_robots(["r1", "r2"])
+    lab.start_all(beacon_interval=0.3)
+
+    def r9_missing() -> list[str]:
+        return missing(lab, {"r1": {"r2": set(), "r9": set()}})
+
+    with pytest.raises(pytest.fail.Exception) as failed, captured(lab, "keep") as folder:
+        wait_for("r9 listed by r1", r9_missing, 1.0)
+    text = str(failed.value)
+    assert "r9 listed by r1: not within 1.0 s: r1 lists {'r2': set()} instead of" in text
+    assert f"pcaps and daemon logs kept for inspection in {folder}" in text
+    try:
+        for name in ("r1", "r2", "medium"):
+            kinds = {r.msg_type for r in read_pcap(folder / f"{name}.pcap") if r.kind == "sdfr"}
+            assert "Alive" in kinds, (name, kinds)
+        assert (folder / "r1.log").read_text()
+    finally:
+        shutil.rmtree(folder)
