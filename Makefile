@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests)
 
-.PHONY: venv test test-netem check fmt bench netlab clean distclean
+.PHONY: venv test test-netem check fmt bench bench-traffic netlab clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -38,6 +38,13 @@ fmt: $(STAMP)
 bench: $(STAMP)
 	mkdir -p runs
 	$(BIN)/python -m bench.api_latency | tee runs/bench-api.json
+	$(MAKE) --no-print-directory bench-traffic
+
+# SDfR's bytes per robot over 5 minutes at the 10 s beacon, fleets of 2, 4 and 6 at once
+# (~6 min); JSON on stdout and in runs/bench-traffic.json, a table on stderr.
+bench-traffic: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.traffic
 
 netlab: $(STAMP)
 	$(BIN)/python -m netlab.demo

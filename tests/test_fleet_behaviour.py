@@ -36,7 +36,9 @@ def wait_for(what: str, problems: Callable[[], list[str]], within: float) -> flo
         except ApiError as exc:
             left = [str(exc)]
         if not left:
-            return time.monotonic() - start
+            took = time.monotonic() - start
+            print(f"{what}: {took:.3f} s (deadline {within:g} s)")
+            return took
         time.sleep(0.01)
     pytest.fail(f"{what}: not within {within} s: " + "; ".join(left))
 
