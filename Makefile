@@ -7,7 +7,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
-LINT_PATHS := $(wildcard sdfr netlab tests)
+LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
 .PHONY: venv test test-netem check fmt bench bench-traffic netlab clean distclean
 
@@ -29,7 +29,7 @@ test-netem: $(STAMP)
 check: $(STAMP)
 	$(BIN)/ruff check $(LINT_PATHS)
 	$(BIN)/ruff format --check $(LINT_PATHS)
-	$(BIN)/mypy --strict sdfr netlab
+	$(BIN)/mypy --strict sdfr netlab bench
 
 fmt: $(STAMP)
 	$(BIN)/ruff check --fix $(LINT_PATHS)
