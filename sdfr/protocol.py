@@ -403,7 +403,8 @@ class Core:
             return
         peer = self._heard(msg.origin, src, now, None)
         if msg.seq is not None:
-            self._send(Response(self._origin(), msg.st, self.location, cfg.max_age, msg.seq), src)
+            # A ping from a peer: the compact reply (no SSDP lines it does not need).
+            self._send(Response(self._origin(), msg.st, "", 0, msg.seq), src)
         if msg.want == WANT_ALL or (msg.want is not None and msg.want_version != self.version):
             if msg.multicast:
                 delay = self.rng.uniform(0, min(float(msg.mx), cfg.reply_delay_max))

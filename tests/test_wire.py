@@ -200,6 +200,29 @@ def test_response_round_trip(
     assert decode(encode(msg)) == msg
 
 
+@given(origin=origins, st_=header_texts, seq=st.integers(0, 2**53))
+def test_compact_ping_reply_round_trip(origin: Origin, st_: str, seq: int) -> None:
+    msg = Response(origin, st_, "", 0, seq)
+    data = encode(msg)
+    assert decode(data) == msg
+    full = encode(Response(origin, st_, LOCATION, 1800, seq))
+    assert len(full) - len(data) >= 100 + len(LOCATION)
+
+
+def test_a_compact_reply_is_only_for_pings() -> None:
+    data = encode(Response(ORIGIN, "uuid:robot-7", "", 0, seq=5))
+    head = data.decode()
+    for name in ("CACHE-CONTROL", "EXT:", "LOCATION", "SERVER", "USN"):
+        assert name not in head, name
+    assert "X-SDFR-SEQ: 5" in head and "X-SDFR-ROBOT: robot-7" in head
+    with pytest.raises(ValueError, match="LOCATION"):
+        encode(Response(ORIGIN, "ssdp:all", "", 0))  # a search response needs its LOCATION
+    with pytest.raises(ValueError, match="max_age 0"):
+        encode(Response(ORIGIN, "ssdp:all", "", 1800, seq=5))
+    # Without SEQ, a response lacking LOCATION is refused as before.
+    check_reject(decode(data.replace(b"X-SDFR-SEQ: 5\r\n", b"")), "missing-header", "LOCATION")
+
+
 @given(origin=origins, location=locations, max_age=max_ages)
 def test_alive_and_byebye_round_trip(origin: Origin, location: str, max_age: int) -> None:
     alive = Alive(origin, location, max_age)
