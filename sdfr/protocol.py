@@ -403,8 +403,17 @@ class Core:
             return
         peer = self._heard(msg.origin, src, now, None)
         if msg.seq is not None:
-            # A ping from a peer: the compact reply (no SSDP lines it does not need).
-            self._send(Response(self._origin(), msg.st, "", 0, msg.seq), src)
+            # A ping from a peer: the compact reply (no SSDP lines it does not need), carrying
+            # our own ping to that peer when it would be due within half a ping interval.
+            ping = None
+            if (
+                peer is not None
+                and peer.reachable
+                and peer.next_ping - now <= cfg.ping_interval / 2
+                and not any(p[0] == peer.robot_id for p in self._pings.values())
+            ):
+                ping = self._new_ping(peer, now)
+            self._send(Response(self._origin(), msg.st, "", 0, msg.seq, ping), src)
         if msg.want == WANT_ALL or (msg.want is not None and msg.want_version != self.version):
             if msg.multicast:
                 delay = self.rng.uniform(0, min(float(msg.mx), cfg.reply_delay_max))
@@ -486,6 +495,9 @@ class Core:
     def _on_response(self, peer: Peer, msg: Response, now: float) -> None:
         if msg.seq is None:
             return
+        if msg.ping is not None:  # the peer's ping, riding on its reply to ours
+            me = f"uuid:{self.config.robot_id}"
+            self._send(Response(self._origin(), me, "", 0, msg.ping), peer.address)
         pending = self._pings.pop(msg.seq, None)
         if pending is None or pending[0] != peer.robot_id:
             return
@@ -599,16 +611,19 @@ class Core:
         f.retry_at = now + f.backoff * self.rng.uniform(0.8, 1.2)
 
     def _ping(self, peer: Peer, now: float) -> None:
-        self._ping_seq = (self._ping_seq + 1) & 0x7FFFFFFF
-        self._pings[self._ping_seq] = (peer.robot_id, now)
+        seq = self._new_ping(peer, now)
         self._send(
-            Discovery(
-                self._origin(), f"uuid:{peer.robot_id}", 0, seq=self._ping_seq, multicast=False
-            ),
+            Discovery(self._origin(), f"uuid:{peer.robot_id}", 0, seq=seq, multicast=False),
             peer.address,
         )
+
+    def _new_ping(self, peer: Peer, now: float) -> int:
+        """A ping to `peer` sent now (its sequence number); the next one is a period away."""
+        self._ping_seq = (self._ping_seq + 1) & 0x7FFFFFFF
+        self._pings[self._ping_seq] = (peer.robot_id, now)
         jitter = self.rng.uniform(1 - self.config.jitter, 1.0)
         peer.next_ping = now + self.config.ping_interval * jitter
+        return self._ping_seq
 
     def _settle_ping(self, peer: Peer, *, ok: bool) -> None:
         before = peer.indicator

@@ -118,6 +118,9 @@ class Response:
     A ping reply (`seq` set) to an SDfR robot may leave `location` empty and `max_age` 0: it
     then goes without the SSDP lines only a UPnP control point needs (CACHE-CONTROL, EXT,
     LOCATION, SERVER, USN), about 150 bytes less, since the pinger knows the robot already.
+    A ping reply may carry the replier's own ping to the pinger (`ping`, X-SDFR-PING), which
+    is answered by a reply with that sequence number: three datagrams give both robots a
+    round trip, where two pings and two replies would take four.
     """
 
     origin: Origin
@@ -125,6 +128,7 @@ class Response:
     location: str
     max_age: int
     seq: int | None = None
+    ping: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -453,12 +457,18 @@ def _discovery_lines(msg: Discovery, group: str, port: int) -> list[str]:
 
 def _response_lines(msg: Response) -> list[str]:
     _check_text("ST", msg.st)
+    ping = []
+    if msg.ping is not None:
+        if msg.seq is None:
+            raise ValueError("only a ping reply (seq) can carry a ping")
+        _check_range("ping", msg.ping, 0, MAX_SEQ)
+        ping = [f"X-SDFR-PING: {msg.ping}"]
     if not msg.location and msg.seq is not None:  # a compact ping reply
         if msg.max_age:
             raise ValueError("a ping reply without LOCATION has max_age 0")
         _check_range("seq", msg.seq, 0, MAX_SEQ)
         return [_OK_LINE, f"ST: {msg.st}", *_origin_lines(msg.origin, "response"),
-                f"X-SDFR-SEQ: {msg.seq}"]  # fmt: skip
+                f"X-SDFR-SEQ: {msg.seq}", *ping]  # fmt: skip
     _check_location(msg.location)
     _check_max_age(msg.max_age)
     lines = [
@@ -474,7 +484,7 @@ def _response_lines(msg: Response) -> list[str]:
     if msg.seq is not None:
         _check_range("seq", msg.seq, 0, MAX_SEQ)
         lines.append(f"X-SDFR-SEQ: {msg.seq}")
-    return lines
+    return lines + ping
 
 
 def _want_text(want: Literal["all"] | tuple[int, ...]) -> str:
@@ -697,11 +707,14 @@ def _decode_response(headers: dict[str, str]) -> Response:
     if not st:
         raise _Rejected("bad-value", "ST is empty")
     seq = _optional_int(headers, "X-SDFR-SEQ", MAX_SEQ)
+    ping = _optional_int(headers, "X-SDFR-PING", MAX_SEQ)
+    if ping is not None and seq is None:
+        raise _Rejected("bad-value", "X-SDFR-PING on a response that answers no ping")
     if seq is not None and "LOCATION" not in headers and "CACHE-CONTROL" not in headers:
-        return Response(origin, st, "", 0, seq)  # a compact ping reply
+        return Response(origin, st, "", 0, seq, ping)  # a compact ping reply
     location = _decode_location(headers)
     max_age = _decode_max_age(headers)
-    return Response(origin, st, location, max_age, seq)
+    return Response(origin, st, location, max_age, seq, ping)
 
 
 def _decode_notify(headers: dict[str, str], body: bytes) -> Alive | Update | Byebye:

@@ -136,6 +136,32 @@ def test_indicator_keeps_the_pings_lost_in_an_outage_and_recovers() -> None:
     assert peer.indicator is not None and fallen < peer.indicator < 1.0
 
 
+def test_a_ping_rides_on_the_reply_to_the_peers_ping() -> None:
+    net = SimNet(seed=19)
+    names = fleet(net, 2, n_services=2, ping_window=1000)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(4 * BEACON)
+    interval = BEACON / 2
+    settled = {n: len(net.nodes[n].core.peers[o].pings) for n, o in (("r1", "r2"), ("r2", "r1"))}
+    t0 = net.now
+    rounds = 60
+    net.run_for(rounds * interval)
+    sent = [d for n in names for t, d, _ in net.nodes[n].sent if t >= t0 and b"X-SDFR-SEQ" in d]
+    pings = sum(d.startswith(b"M-SEARCH") for d in sent)
+    replies = sum(d.startswith(b"HTTP/1.1 200 OK") for d in sent)
+    riding = sum(b"X-SDFR-PING" in d for d in sent)
+    # Each robot still gets about one round trip per ping interval...
+    for (a, b), before in zip((("r1", "r2"), ("r2", "r1")), settled.values(), strict=True):
+        peer = net.nodes[a].core.peers[b]
+        got = len(peer.pings) - before
+        assert rounds * 0.9 <= got <= rounds * 1.15, (a, got)
+        assert peer.indicator == 1.0
+    # ... from three datagrams a round (a ping, a reply carrying the other's ping, its reply)
+    # rather than four.
+    assert riding >= rounds * 0.8
+    assert pings + replies <= 3.3 * rounds * 1.1, (pings, replies)
+
+
 def test_partition_and_merge_no_refetch_no_ghosts() -> None:
     net = SimNet(seed=9)
     names = fleet(net, 6)
@@ -253,11 +279,15 @@ def test_unknown_version_is_asked_by_unicast() -> None:
     net = SimNet(seed=15)
     names = fleet(net, 3, n_services=5)
     net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
-    net.filter = lambda src, dst, data: not (dst == "r1" and b"ssdp:update" in data)
+    # r1 hears nothing of r3 while r3 announces its new set: it learns of version 2 later
+    # (from a beacon or a ping) and must ask r3 for it.
+    net.filter = lambda src, dst, data: not (dst == "r1" and src == "r3")
     net.set_services("r3", 2, services("r3", 6))
     net.run_for(0.2)
     net.filter = None
-    net.wait_until(lambda: net.nodes["r1"].core.peers["r3"].current, timeout=2 * BEACON)
+    assert net.nodes["r1"].core.peers["r3"].version == 1
+    peer = net.nodes["r1"].core.peers["r3"]
+    net.wait_until(lambda: peer.version == 2 and peer.current, timeout=2 * BEACON)
     asks = [
         (d, dst)
         for _, d, dst in net.nodes["r1"].sent
@@ -406,10 +436,11 @@ def test_a_delta_without_its_base_fetches_the_whole_set() -> None:
     names = fleet(net, 3, n_services=30)
     net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
     net.run_for(2 * BEACON)
-    net.filter = lambda src, dst, data: not (dst == "r2" and b"X-SDFR-BASE: 1" in data)
+    net.filter = lambda src, dst, data: not (dst == "r2" and src == "r1")
     net.set_services("r1", 2, services("r1", 31))
     net.run_for(0.1)
     net.filter = None
+    assert net.nodes["r2"].core.peers["r1"].version == 1  # r2 knows nothing of version 2
     t0 = net.now
     net.set_services("r1", 3, services("r1", 32))
     net.wait_until(lambda: net.all_see_all(names), timeout=1.0)

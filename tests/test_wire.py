@@ -200,13 +200,24 @@ def test_response_round_trip(
     assert decode(encode(msg)) == msg
 
 
-@given(origin=origins, st_=header_texts, seq=st.integers(0, 2**53))
-def test_compact_ping_reply_round_trip(origin: Origin, st_: str, seq: int) -> None:
-    msg = Response(origin, st_, "", 0, seq)
+@given(origin=origins, st_=header_texts, seq=st.integers(0, 2**53), ping=seqs)
+def test_compact_ping_reply_round_trip(
+    origin: Origin, st_: str, seq: int, ping: int | None
+) -> None:
+    msg = Response(origin, st_, "", 0, seq, ping)
     data = encode(msg)
     assert decode(data) == msg
-    full = encode(Response(origin, st_, LOCATION, 1800, seq))
+    full = encode(Response(origin, st_, LOCATION, 1800, seq, ping))
+    assert decode(full) == Response(origin, st_, LOCATION, 1800, seq, ping)
     assert len(full) - len(data) >= 100 + len(LOCATION)
+
+
+def test_only_a_ping_reply_carries_a_ping() -> None:
+    with pytest.raises(ValueError, match="only a ping reply"):
+        encode(Response(ORIGIN, "ssdp:all", LOCATION, 1800, ping=3))
+    data = encode(Response(ORIGIN, "uuid:robot-7", LOCATION, 1800, seq=5, ping=3))
+    assert b"X-SDFR-PING: 3\r\n" in data
+    check_reject(decode(data.replace(b"X-SDFR-SEQ: 5\r\n", b"")), "bad-value", "X-SDFR-PING")
 
 
 def test_a_compact_reply_is_only_for_pings() -> None:
