@@ -44,6 +44,7 @@ __all__ = [
     "PAPER_TX_KB_5MIN",
     "ArpCounts",
     "PcapError",
+    "PingTally",
     "Record",
     "RobotTraffic",
     "Series",
@@ -58,6 +59,7 @@ __all__ = [
     "paper_measure",
     "per_second",
     "per_type",
+    "ping_delivery",
     "read_pcap",
     "read_run",
     "received_per_robot",
@@ -597,6 +599,48 @@ def count_updates(
         and since <= r.time < until
         and (robot is None or r.robot == robot)
     )
+
+
+@dataclass(frozen=True, slots=True)
+class PingTally:
+    """Unicast pings one robot sent another, and how many of their replies came back."""
+
+    sent: int
+    answered: int
+
+    @property
+    def rate(self) -> float | None:
+        return self.answered / self.sent if self.sent else None
+
+
+def ping_delivery(
+    records: Iterable[Record], *, since: float = -math.inf, until: float = math.inf
+) -> dict[tuple[str, str], PingTally]:
+    """(pinger, pinged) -> pings the pinger sent in [since, until) and replies that reached
+    it: the round-trip delivery the connection indicator estimates, measured on the air.
+    Needs the robots' own captures (their "tx" and "rx" records)."""
+    records = list(records)
+    owners = _address_owners(records)
+    sent: dict[tuple[str, int], str] = {}  # (capture, seq) -> pinged robot
+    pinger: dict[str, str] = {}  # capture -> the robot whose pings it saw leave
+    replies: set[tuple[str, int]] = set()
+    for r in records:
+        if r.kind != SDFR or r.seq is None:
+            continue
+        if r.direction == TX and r.msg_type == "Discovery" and since <= r.time < until:
+            target = owners.get(r.dst)
+            if target is not None and r.robot is not None:
+                sent[(r.capture, r.seq)] = target
+                pinger[r.capture] = r.robot
+        elif r.direction == RX and r.msg_type == "Response":
+            replies.add((r.capture, r.seq))
+    answered = replies & set(sent)
+    tally: dict[tuple[str, str], list[int]] = defaultdict(lambda: [0, 0])
+    for (capture, seq), target in sent.items():
+        t = tally[(pinger[capture], target)]
+        t[0] += 1
+        t[1] += (capture, seq) in answered
+    return {pair: PingTally(n, ok) for pair, (n, ok) in sorted(tally.items())}
 
 
 def neighbour_agreement(

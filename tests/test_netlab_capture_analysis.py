@@ -527,3 +527,32 @@ def test_tcpdump_counters_are_parsed() -> None:
     stats = _parse_stats(lines)
     assert (stats.captured, stats.received, stats.dropped) == (12, 14, 1)
     assert _parse_stats([]).captured is None
+
+
+def test_ping_delivery_pairs_pings_with_their_replies() -> None:
+    from netlab.analysis import PingTally, ping_delivery
+
+    def rec(t: float, cap: str, d: str, src: int, dst: int, typ: str, seq: int) -> Record:
+        return Record(
+            t, cap, d, "sdfr", mac(src), mac(dst), ip(src), ip(dst), False, 300, 258,
+            msg_type=typ, robot=f"r{src}", seq=seq,
+        )  # fmt: skip
+
+    recs = [
+        # r1 pings r2 three times; replies 1 and 3 come back (reply 2 is lost).
+        rec(T0 + 0, "r1", "tx", 1, 2, "Discovery", 1),
+        rec(T0 + 0.01, "r1", "rx", 2, 1, "Response", 1),
+        rec(T0 + 1, "r1", "tx", 1, 2, "Discovery", 2),
+        rec(T0 + 2, "r1", "tx", 1, 2, "Discovery", 3),
+        rec(T0 + 2.01, "r1", "rx", 2, 1, "Response", 3),
+        # r2 pings r1 once, unanswered; r2's pcap also shows the reply it sent r1.
+        rec(T0 + 0.5, "r2", "tx", 2, 1, "Discovery", 7),
+        rec(T0 + 0.01, "r2", "tx", 2, 1, "Response", 1),
+    ]
+    assert ping_delivery(recs) == {
+        ("r1", "r2"): PingTally(3, 2),
+        ("r2", "r1"): PingTally(1, 0),
+    }
+    assert ping_delivery(recs)[("r1", "r2")].rate == pytest.approx(2 / 3)
+    assert ping_delivery(recs, since=T0 + 1) == {("r1", "r2"): PingTally(2, 1)}
+    assert PingTally(0, 0).rate is None
