@@ -115,6 +115,7 @@ class Record:
     parts: int | None = None
     services: int | None = None
     seq: int | None = None  # Discovery/Response: a unicast ping and its reply
+    ping: int | None = None  # Response: the sender's own ping riding on its reply
     reason: str | None = None  # Reject: why
     arp_op: int | None = None  # 1 request, 2 reply
 
@@ -339,6 +340,7 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
         parts=view.get("parts"),
         services=view.get("services"),
         seq=view.get("seq"),
+        ping=view.get("ping"),
         reason=view.get("reason"),
     )
 
@@ -618,6 +620,7 @@ def ping_delivery(
 ) -> dict[tuple[str, str], PingTally]:
     """(pinger, pinged) -> pings the pinger sent in [since, until) and replies that reached
     it: the round-trip delivery the connection indicator estimates, measured on the air.
+    A ping is a Discovery with a sequence number, or one riding on a ping reply (`ping`).
     Needs the robots' own captures (their "tx" and "rx" records)."""
     records = list(records)
     owners = _address_owners(records)
@@ -627,10 +630,11 @@ def ping_delivery(
     for r in records:
         if r.kind != SDFR or r.seq is None:
             continue
-        if r.direction == TX and r.msg_type == "Discovery" and since <= r.time < until:
+        if r.direction == TX and since <= r.time < until:
             target = owners.get(r.dst)
-            if target is not None and r.robot is not None:
-                sent[(r.capture, r.seq)] = target
+            seq = r.seq if r.msg_type == "Discovery" else r.ping
+            if target is not None and r.robot is not None and seq is not None:
+                sent[(r.capture, seq)] = target
                 pinger[r.capture] = r.robot
         elif r.direction == RX and r.msg_type == "Response":
             replies.add((r.capture, r.seq))

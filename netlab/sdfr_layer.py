@@ -58,6 +58,8 @@ def describe(data: bytes) -> dict[str, Any]:
     if isinstance(msg, wire.Discovery | wire.Response):
         out["st"] = msg.st
         out["seq"] = msg.seq
+    if isinstance(msg, wire.Response):
+        out["ping"] = msg.ping
     return out
 
 
@@ -115,6 +117,7 @@ _VIEW_FIELDS = (
     "services",
     "st",
     "seq",
+    "ping",
     "reason",
     "detail",
 )
@@ -126,7 +129,8 @@ class SDfR(Packet):
     start: the start line (at most 80 characters); method: M-SEARCH, NOTIFY or RESPONSE;
     msg_type: one of MSG_TYPES; robot, fleet, boot, version: the sender (None for a plain
     SSDP search); part (0-based), parts, services: Update only; st, seq: Discovery and
-    Response (seq marks a unicast ping); reason, detail: Reject only.
+    Response (seq marks a unicast ping); ping: a ping riding on a Response (its sequence
+    number); reason, detail: Reject only.
     """
 
     name = "SDfR"

@@ -532,10 +532,12 @@ def test_tcpdump_counters_are_parsed() -> None:
 def test_ping_delivery_pairs_pings_with_their_replies() -> None:
     from netlab.analysis import PingTally, ping_delivery
 
-    def rec(t: float, cap: str, d: str, src: int, dst: int, typ: str, seq: int) -> Record:
+    def rec(
+        t: float, cap: str, d: str, src: int, dst: int, typ: str, seq: int, ping: int | None = None
+    ) -> Record:
         return Record(
             t, cap, d, "sdfr", mac(src), mac(dst), ip(src), ip(dst), False, 300, 258,
-            msg_type=typ, robot=f"r{src}", seq=seq,
+            msg_type=typ, robot=f"r{src}", seq=seq, ping=ping,
         )  # fmt: skip
 
     recs = [
@@ -545,13 +547,15 @@ def test_ping_delivery_pairs_pings_with_their_replies() -> None:
         rec(T0 + 1, "r1", "tx", 1, 2, "Discovery", 2),
         rec(T0 + 2, "r1", "tx", 1, 2, "Discovery", 3),
         rec(T0 + 2.01, "r1", "rx", 2, 1, "Response", 3),
-        # r2 pings r1 once, unanswered; r2's pcap also shows the reply it sent r1.
+        # r2 pings r1 once, unanswered; its reply to r1's first ping carried another ping
+        # of its own (8), which r1 answered.
         rec(T0 + 0.5, "r2", "tx", 2, 1, "Discovery", 7),
-        rec(T0 + 0.01, "r2", "tx", 2, 1, "Response", 1),
+        rec(T0 + 0.01, "r2", "tx", 2, 1, "Response", 1, ping=8),
+        rec(T0 + 0.02, "r2", "rx", 1, 2, "Response", 8),
     ]
     assert ping_delivery(recs) == {
         ("r1", "r2"): PingTally(3, 2),
-        ("r2", "r1"): PingTally(1, 0),
+        ("r2", "r1"): PingTally(2, 1),
     }
     assert ping_delivery(recs)[("r1", "r2")].rate == pytest.approx(2 / 3)
     assert ping_delivery(recs, since=T0 + 1) == {("r1", "r2"): PingTally(2, 1)}
