@@ -325,6 +325,13 @@ def _min_max(value: object, what: str, low: float) -> None:
         raise _Bad(f"{what}: min {a:g} is above max {b:g}")
 
 
+def _count(value: object, what: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise _Bad(f"{what}: expected a whole number, got {value!r}")
+    if value < 0:
+        raise _Bad(f"{what}: must be >= 0, got {value}")
+
+
 def _size(value: object, what: str) -> None:
     if not (isinstance(value, Sequence) and len(value) == 2):
         raise _Bad(f"{what}: expected (width, height) in metres, got {value!r}")
@@ -517,10 +524,7 @@ class Updates(Condition):
         return f"at most {self.at_most} Update datagrams since {self.after or 'the last step'}"
 
     def _validate(self, ctx: _Ctx) -> None:
-        if isinstance(self.at_most, bool) or not isinstance(self.at_most, int):
-            raise _Bad(f"at_most: expected a whole number, got {self.at_most!r}")
-        if self.at_most < 0:
-            raise _Bad(f"at_most: must be >= 0, got {self.at_most}")
+        _count(self.at_most, "at_most")
 
 
 @dataclass(frozen=True)
@@ -541,10 +545,7 @@ class Flaps(Condition):
         return f"no peer flaps out more than {self.at_most} per {Duration.of(self.per)}{over}"
 
     def _validate(self, ctx: _Ctx) -> None:
-        if isinstance(self.at_most, bool) or not isinstance(self.at_most, int):
-            raise _Bad(f"at_most: expected a whole number, got {self.at_most!r}")
-        if self.at_most < 0:
-            raise _Bad(f"at_most: must be >= 0, got {self.at_most}")
+        _count(self.at_most, "at_most")
         _check_field("per", lambda: Duration.of(self.per))
 
 
