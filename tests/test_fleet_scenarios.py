@@ -10,6 +10,7 @@ on real sdfrd daemons in netlab, as `netlab run NAME` runs them.
   one the medium's loss allows and the one measured in the captures;
 * mobility (check 8): random waypoint, 6 robots, 2 minutes: the lists agree with the
   medium's truth >= 95 % of the time with a 1-beacon lag;
+  (lossy and mobility run side by side, each on its own lab, to keep CI's wall time down);
 * scale-50 (check 10): 50 robots at the product's 10 s beacon converge and stay converged
   for a minute; CPU and memory per daemon measured.
 
@@ -24,7 +25,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Mapping
 from datetime import datetime
 from pathlib import Path
 
@@ -38,31 +40,57 @@ pytestmark = pytest.mark.root
 RUNS = Path(__file__).resolve().parent.parent / "runs" / "tests"
 
 
+Inspect = Callable[[scenario.RunResult, Path], None]
+
+
 def run_bundled(
-    name: str, inspect: Callable[[scenario.RunResult, Path], None] | None = None
-) -> scenario.RunResult:
-    """Run bundled scenario `name` in full; fail with its summary, keeping its folder.
-    `inspect(result, folder)` looks further into a passed run before its folder goes."""
-    sc = scenario.load(scenario.find(name))
-    folder = RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
-    result = scenario.run(sc, run_dir=folder, quick=False)
-    if result.status == "skipped":
-        pytest.fail(f"{name} was skipped: {result.reason}")
-    if not result.ok:
-        pytest.fail(
-            "\n".join([f"scenario {name} {result.status}:", *result.summary()])
-            + f"\nrun folder kept for inspection: {folder} (pcaps, run.json, report.json, logs/)",
-            pytrace=False,
-        )
-    if inspect is not None:
-        try:
-            inspect(result, folder)
-        except BaseException:
-            print(f"run folder kept for inspection: {folder}")
-            raise
+    *names: str, inspect: Mapping[str, Inspect] | None = None
+) -> list[scenario.RunResult]:
+    """Run bundled scenarios in full -- several at the same time, each on its own lab (its own
+    namespaces, medium and captures) -- and fail with the summary of each that did not pass,
+    keeping its folder.  `inspect[name](result, folder)` looks further into a passed run
+    before its folder goes."""
+    runs: dict[str, tuple[scenario.RunResult, Path]] = {}
+
+    def one(name: str) -> None:
+        sc = scenario.load(scenario.find(name))
+        folder = RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+        say = print if len(names) == 1 else (lambda line: print(f"[{name}] {line}", flush=True))
+        runs[name] = (scenario.run(sc, run_dir=folder, quick=False, say=say), folder)
+
+    threads = [threading.Thread(target=one, args=(n,), name=f"scenario-{n}") for n in names]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    failures = []
+    for name in names:
+        if name not in runs:
+            failures.append(f"scenario {name} did not finish (its thread raised; see above)")
+            continue
+        result, folder = runs[name]
+        if result.status == "skipped":
+            failures.append(f"{name} was skipped: {result.reason}")
+        elif not result.ok:
+            failures.append(
+                "\n".join([f"scenario {name} {result.status}:", *result.summary()])
+                + f"\nrun folder kept for inspection: {folder} (pcaps, run.json, report.json, "
+                "logs/)"
+            )
+    if failures:
+        pytest.fail("\n\n".join(failures), pytrace=False)
+    for name in names:
+        result, folder = runs[name]
+        if inspect is not None and name in inspect:
+            try:
+                inspect[name](result, folder)
+            except BaseException:
+                print(f"run folder kept for inspection: {folder}")
+                raise
     if os.environ.get("SDFR_KEEP_RUNS") != "1":
-        shutil.rmtree(folder, ignore_errors=True)
-    return result
+        for _, folder in runs.values():
+            shutil.rmtree(folder, ignore_errors=True)
+    return [runs[n][0] for n in names]
 
 
 def check(result: scenario.RunResult, kind: str) -> scenario.CheckResult:
@@ -72,18 +100,21 @@ def check(result: scenario.RunResult, kind: str) -> scenario.CheckResult:
 
 
 def test_silent_departure() -> None:
-    result = run_bundled("silent-departure")
+    (result,) = run_bundled("silent-departure")
     kinds = [c.kind for c in result.checks]
     assert kinds.count("unreachable") == 2 and kinds.count("history") == 2
 
 
 def test_partition_and_merge() -> None:
-    result = run_bundled("partition-merge")
+    (result,) = run_bundled("partition-merge")
     updates = check(result, "updates")
     assert updates.ok is True and updates.detail.startswith("0 Update datagrams"), updates.detail
 
 
-def test_thirty_percent_loss_on_every_pair() -> None:
+def test_lossy_links_and_mobility_side_by_side() -> None:
+    """Checks 7 (30 % loss) and 8 (random waypoint), two minutes each, run at the same time
+    on two labs: the suite's wall time in CI counts, and neither fleet hears the other."""
+
     def measured(result: scenario.RunResult, folder: Path) -> None:
         # The true delivery rate, measured on the air: of the pings each robot sent a peer
         # during the lossy window, the share whose reply reached it (ARP delays included).
@@ -100,24 +131,21 @@ def test_thirty_percent_loss_on_every_pair() -> None:
         rates = sorted(t.rate or 0.0 for t in tally.values())
         print(f"lossy: measured round-trip delivery {rates[0]:.2f}-{rates[-1]:.2f} per pair")
 
-    result = run_bundled("lossy", measured)
+    result, walk = run_bundled("lossy", "mobility", inspect={"lossy": measured})
     flaps = check(result, "flaps")
     assert flaps.data["flaps"]["samples"] >= 300, flaps.detail  # two minutes, sampled
     ind = check(result, "indicator")
     assert ind.data["abs_error"]["pairs"] == 30, ind.data
     print(f"lossy: {flaps.detail}; indicators: {ind.detail}")
 
-
-def test_random_waypoint_mobility_two_minutes() -> None:
-    result = run_bundled("mobility")
-    agree = next(c for c in result.checks if c.kind == "agreement")
+    agree = next(c for c in walk.checks if c.kind == "agreement")
     share = agree.data["agreement"]["pair_share"]
     assert share >= 0.95
     print(f"mobility: agreement {share:.1%} with a 1-beacon lag ({agree.detail})")
 
 
 def test_fifty_robots_converge_and_stay_converged() -> None:
-    result = run_bundled("scale-50")
+    (result,) = run_bundled("scale-50")
     res = check(result, "resources")
     assert res.ok is True and res.data["daemons"] == 50, res.detail
     assert all(u["processes"] == 3 for u in res.data["per_daemon"].values()), res.data
