@@ -173,6 +173,8 @@ class Core:
         self.counters = Counters()
         self._out: list[Outgoing] = []
         self._dirty: set[str] = set()
+        #: Address -> when a ping to it was last answered (a round trip proven).
+        self._answered: dict[Addr, float] = {}
         #: How many times a peer became reachable (a merge or an arrival shows here).
         self.arrivals = 0
         self._started = False
@@ -355,6 +357,18 @@ class Core:
         out, self._out = self._out, []
         return out
 
+    def round_trip_proven(self, addr: Addr, now: float) -> bool:
+        """Whether a ping to `addr` was answered within the last two ping intervals: what
+        goes there now can tell the kernel the neighbour is reachable (``MSG_CONFIRM``), so
+        it does not probe it with ARP while the pings keep coming back."""
+        t = self._answered.get(addr)
+        if t is None:
+            return False
+        if now - t > 2 * self.config.ping_interval:
+            del self._answered[addr]
+            return False
+        return True
+
     @property
     def has_dirty(self) -> bool:
         return bool(self._dirty)
@@ -503,6 +517,7 @@ class Core:
             return
         sample = now - pending[1]
         peer.rtt = sample if peer.rtt is None else 0.8 * peer.rtt + 0.2 * sample
+        self._answered[peer.address] = now
         self._settle_ping(peer, ok=True)
 
     # -- peer bookkeeping ------------------------------------------------------------------

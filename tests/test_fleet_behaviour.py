@@ -159,3 +159,32 @@ def test_a_failed_check_says_who_missed_what_and_keeps_the_pcaps(lab: Lab) -> No
         assert (folder / "r1.log").read_text()
     finally:
         shutil.rmtree(folder)
+
+
+def test_answered_pings_keep_the_neighbour_reachable_without_arp_probes(lab: Lab) -> None:
+    """sdfrd sends to a peer whose pings come back with MSG_CONFIRM, so the kernel keeps the
+    peer's neighbour entry reachable instead of probing it with ARP every reachable time (a
+    probe a lossy link can lose, and then unicasts wait on a new resolution). The robots'
+    reachable time is cut to 1 s here so that probing would show within seconds."""
+    from netlab.analysis import arp_counts_by_sender, read_pcap
+    from netlab.capture import Capture, start_all, stop_all
+    from netlab.naming import ROBOT_IFACE
+
+    lab.add_robots(["r1", "r2"])
+    for r in ("r1", "r2"):
+        for key, value in (("base_reachable_time_ms", "1000"), ("delay_first_probe_time", "1")):
+            res = lab.exec(r, ["sysctl", "-qw", f"net.ipv4.neigh.{ROBOT_IFACE}.{key}={value}"])
+            assert res.returncode == 0, res.stderr
+    lab.start_all(beacon_interval=0.5)
+    wait_for("r1 and r2 list each other", lambda: missing(lab, {"r1": {"r2": set()}}), 2.0)
+    time.sleep(2.0)  # the first resolutions are done
+    r1 = lab.robot("r1")
+    cap = Capture(r1.ns, ROBOT_IFACE, lab.workdir / "r1-arp.pcap", label="r1")
+    start_all([cap])
+    time.sleep(8.0)
+    stop_all([cap])
+    sent = arp_counts_by_sender(list(read_pcap(lab.workdir / "r1-arp.pcap"))).get(r1.mac)
+    # Without confirmation r1 would probe r2 every 1-3 s (4-8 probes in 8 s).
+    assert sent is None or sent.requests <= 1, sent
+    neigh = lab.exec("r1", ["ip", "neigh", "show", "dev", ROBOT_IFACE]).stdout
+    assert "REACHABLE" in neigh, neigh

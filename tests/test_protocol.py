@@ -162,6 +162,19 @@ def test_a_ping_rides_on_the_reply_to_the_peers_ping() -> None:
     assert pings + replies <= 3.3 * rounds * 1.1, (pings, replies)
 
 
+def test_a_round_trip_is_proven_while_pings_come_back() -> None:
+    net = SimNet(seed=20)
+    names = fleet(net, 2, n_services=2)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    core, r2 = net.nodes["r1"].core, net.nodes["r2"].addr
+    assert core.round_trip_proven(r2, net.now)
+    assert not core.round_trip_proven(("10.9.9.9", 1900), net.now)
+    net.partition(["r1"], ["r2"])
+    net.run_for(2.5 * BEACON)  # 5 ping intervals without an answer
+    assert not core.round_trip_proven(r2, net.now)
+
+
 def test_partition_and_merge_no_refetch_no_ghosts() -> None:
     net = SimNet(seed=9)
     names = fleet(net, 6)

@@ -324,9 +324,16 @@ class DiscoveryLayer:
     def _pump(self) -> None:
         """Send what the core wants sent, persist what changed, re-arm the one timer."""
         group = (self.cfg.group, self.cfg.port)
+        now = time.monotonic()
         for data, dst in self.core.datagrams_to_send():
             try:
-                self.sock.sendto(data, dst if dst is not None else group)
+                if dst is not None and self.core.round_trip_proven(dst, now):
+                    # Our pings to it come back: tell the kernel, so that it keeps the
+                    # neighbour entry reachable instead of probing it with ARP (which a lossy
+                    # link can fail, and then unicasts wait on a new resolution).
+                    self.sock.sendto(data, socket.MSG_CONFIRM, dst)
+                else:
+                    self.sock.sendto(data, dst if dst is not None else group)
             except OSError as exc:
                 self.core.counters.rejects["send-error"] += 1
                 log.debug("sendto %s: %s", dst or group, exc)
