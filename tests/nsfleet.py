@@ -28,9 +28,11 @@ import itertools
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from types import TracebackType
 from typing import Any
 
@@ -237,6 +239,19 @@ class NsFleet:
         proc: subprocess.Popen[Any] = subprocess.Popen(self._cmd(i, argv), **kw)
         self._procs.append((i, proc))
         return proc
+
+    def sdfrd(
+        self, i: int, state_dir: Path, log: Path, beacon: float, *extra: str
+    ) -> subprocess.Popen[Any]:
+        """Start sdfrd in robot ``i`` (on eth0, fleet 1, robot id ``r<i>``) with that state
+        directory and beacon, and ``extra`` flags; its output is appended to ``log``."""
+        argv = [
+            sys.executable, "-m", "sdfr.daemon.supervisor", "--iface", "eth0", "--fleet", "1",
+            "--robot-id", f"r{i}", "--state-dir", str(state_dir),
+            "--beacon-interval", str(beacon), *extra,
+        ]  # fmt: skip
+        with open(log, "ab") as out:
+            return self.popen(i, argv, stdout=out, stderr=subprocess.STDOUT)
 
     def exec(self, i: int, argv: Sequence[str], **kw: Any) -> subprocess.CompletedProcess[Any]:
         """Run ``argv`` inside robot ``i`` to completion (text output captured,

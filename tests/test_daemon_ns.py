@@ -36,29 +36,7 @@ class Robots:
         return self.tmp / f"r{i}"
 
     def start(self, i: int, *extra: str) -> None:
-        log = open(self.tmp / f"r{i}.log", "ab")  # noqa: SIM115 - closed with the process
-        self.procs[i] = self.fleet.popen(
-            i,
-            [
-                sys.executable,
-                "-m",
-                "sdfr.daemon.supervisor",
-                "--iface",
-                "eth0",
-                "--fleet",
-                "1",
-                "--robot-id",
-                f"r{i}",
-                "--state-dir",
-                str(self.state(i)),
-                "--beacon-interval",
-                str(BEACON),
-                *extra,
-            ],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
-        log.close()
+        self.procs[i] = self.fleet.sdfrd(i, self.state(i), self.tmp / f"r{i}.log", BEACON, *extra)
         self.wait_healthy(i)
 
     def client(self, i: int) -> Client:

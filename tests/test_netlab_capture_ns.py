@@ -61,31 +61,7 @@ def environment(before: int) -> str:
 
 
 def start_daemon(fleet: NsFleet, i: int, tmp: Path) -> subprocess.Popen[Any]:
-    state = tmp / f"state-r{i}"
-    log = open(tmp / f"r{i}.log", "ab")  # noqa: SIM115 - closed right after the fork
-    try:
-        return fleet.popen(
-            i,
-            [
-                sys.executable,
-                "-m",
-                "sdfr.daemon.supervisor",
-                "--iface",
-                "eth0",
-                "--fleet",
-                "1",
-                "--robot-id",
-                f"r{i}",
-                "--state-dir",
-                str(state),
-                "--beacon-interval",
-                str(BEACON),
-            ],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
-    finally:
-        log.close()
+    return fleet.sdfrd(i, tmp / f"state-r{i}", tmp / f"r{i}.log", BEACON)
 
 
 def wait_healthy(tmp: Path, i: int, timeout: float = 15.0) -> None:
