@@ -33,7 +33,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from netlab import analysis, cleanup, kernel, manifest, naming, scenario
+from netlab import analysis, cleanup, manifest, naming, scenario
 from netlab.errors import NetlabError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -173,16 +173,6 @@ def summarise(n: int, sc: scenario.Scenario, res: scenario.RunResult) -> dict[st
     }
 
 
-def leftovers(labs: list[str]) -> list[str]:
-    """Namespaces or manifests of these labs still there."""
-    out = []
-    for lab in labs:
-        out += kernel.list_ns(naming.prefix(lab))
-        if manifest.load(lab) is not None:
-            out.append(f"manifest of lab {lab}")
-    return out
-
-
 def table(sizes: list[dict[str, Any]]) -> str:
     def rng(entry: dict[str, Any], d: str, s: str) -> str:
         v = entry["per_5_min_kB"][d][s]
@@ -271,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             except NetlabError as exc:
                 err(f"bench: {exc} (`netlab down {lab}` to retry)")
         return 130
-    left = leftovers(list(labs.values()))
+    left = [thing for lab in labs.values() for thing in cleanup.leftovers(lab)]
 
     problems = [f"static-{n}: {crashes[n]}" for n in sorted(crashes)]
     for n in sizes:

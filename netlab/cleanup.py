@@ -141,6 +141,15 @@ class SweepResult:
         return not (self.processes or self.namespaces or self.workdir or self.manifest)
 
 
+def leftovers(name: str) -> list[str]:
+    """What of lab `name` is still there: its namespaces, and its manifest (as text); empty
+    once the lab is down."""
+    left = [f"namespace {ns}" for ns in kernel.list_ns(naming.prefix(name))]
+    if manifest.load(name) is not None:
+        left.append(f"manifest {manifest.path_of(name)}")
+    return left
+
+
 def sweep(name: str, record: Manifest | None, grace: float = TERM_GRACE) -> SweepResult:
     """Remove everything of lab `name` (see the module doc); KernelError if something stays."""
     naming.check_lab_name(name)

@@ -70,16 +70,14 @@ def _take_down(lab: Lab) -> list[str]:
         lab.down()
     except Exception as exc:  # report it, then sweep by name below
         problems.append(f"{lab.name}: down() failed: {exc}")
-    if kernel.list_ns(naming.prefix(lab.name)) or manifest.load(lab.name) is not None:
+    if cleanup.leftovers(lab.name):
         try:
             cleanup.sweep(lab.name, manifest.load(lab.name))
         except Exception as exc:
             problems.append(f"{lab.name}: sweep failed: {exc}")
-    left = kernel.list_ns(naming.prefix(lab.name))
+    left = cleanup.leftovers(lab.name)
     if left:
-        problems.append(f"{lab.name}: namespaces left behind: {', '.join(left)}")
-    if manifest.load(lab.name) is not None:
-        problems.append(f"{lab.name}: manifest {manifest.path_of(lab.name)} left behind")
+        problems.append(f"{lab.name}: left behind: {', '.join(left)}")
     return problems
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from netlab import kernel, manifest, naming
+from netlab import cleanup, kernel, manifest, naming
 from netlab.cleanup import running
 from netlab.doctor import capabilities, format_report
 from netlab.errors import KernelError, LabExistsError, ShapingUnsupported
@@ -517,3 +517,11 @@ def test_daemons_follow_partition_and_merge(make_lab: Callable[..., Lab]) -> Non
     # Byebye: well before the 3 silent beacon periods a kill needs.
     took = poll("r3 gone at once (Byebye)", lambda: "r3" not in listed("r1"), 1.0)
     assert took < 2 * BEACON
+
+
+def test_leftovers_name_what_is_left_of_a_lab(lab: Lab) -> None:
+    left = cleanup.leftovers(lab.name)
+    assert f"namespace {naming.air_ns(lab.name)}" in left
+    assert f"manifest {manifest.path_of(lab.name)}" in left
+    lab.down()
+    assert cleanup.leftovers(lab.name) == []
