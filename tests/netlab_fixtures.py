@@ -34,6 +34,18 @@ from netlab.lab import Lab
 #: Where a failed test's captures are kept.
 RUNS = Path(__file__).resolve().parent.parent / "runs" / "tests"
 
+
+def run_folder(name: str) -> Path:
+    """A new folder name under RUNS for a test's run called `name`."""
+    return RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+
+
+def discard(folder: Path) -> None:
+    """Remove a passed run's folder, unless SDFR_KEEP_RUNS=1 asks to keep every run."""
+    if os.environ.get("SDFR_KEEP_RUNS") != "1":
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 DEFAULT_ROBOTS = 3
 DEFAULT_BEACON = 0.5
 SKIP_REASON = "needs root and network namespaces (CI runs as root)"
@@ -143,7 +155,7 @@ def captured(lab: Lab, name: str) -> Iterator[Path]:
     """tcpdump on every robot of `lab` (added so far) and on its medium while the block runs;
     the pcaps are removed when it passes (unless SDFR_KEEP_RUNS=1) and kept, with the daemons'
     logs, when it fails -- the failure's message gains the folder."""
-    folder = RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+    folder = run_folder(name)
     folder.mkdir(parents=True, exist_ok=True)
     caps = [Capture(lab.medium.ns, naming.BRIDGE, folder / "medium.pcap", label="medium")]
     caps += [
@@ -165,5 +177,4 @@ def captured(lab: Lab, name: str) -> Iterator[Path]:
         print(note)
         raise
     stop_all(caps)
-    if os.environ.get("SDFR_KEEP_RUNS") != "1":
-        shutil.rmtree(folder, ignore_errors=True)
+    discard(folder)

@@ -23,21 +23,17 @@ SDFR_KEEP_RUNS=1.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import threading
 from collections.abc import Callable, Mapping
-from datetime import datetime
 from pathlib import Path
 
 import pytest
 
 from netlab import scenario
 from netlab.analysis import ping_delivery, read_run
+from tests.netlab_fixtures import discard, run_folder
 
 pytestmark = pytest.mark.root
-
-RUNS = Path(__file__).resolve().parent.parent / "runs" / "tests"
 
 
 Inspect = Callable[[scenario.RunResult, Path], None]
@@ -54,7 +50,7 @@ def run_bundled(
 
     def one(name: str) -> None:
         sc = scenario.load(scenario.find(name))
-        folder = RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+        folder = run_folder(name)
         say = print if len(names) == 1 else (lambda line: print(f"[{name}] {line}", flush=True))
         runs[name] = (scenario.run(sc, run_dir=folder, quick=False, say=say), folder)
 
@@ -87,9 +83,8 @@ def run_bundled(
             except BaseException:
                 print(f"run folder kept for inspection: {folder}")
                 raise
-    if os.environ.get("SDFR_KEEP_RUNS") != "1":
-        for _, folder in runs.values():
-            shutil.rmtree(folder, ignore_errors=True)
+    for _, folder in runs.values():
+        discard(folder)
     return [runs[n][0] for n in names]
 
 
