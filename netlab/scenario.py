@@ -1907,6 +1907,7 @@ class _Run:
         self.captured = False
         self.wall = (time.time(), time.time())
         self.action_wall = time.time()  # start of the last action step (wall clock)
+        self._baseline: tuple[float, dict[str, dict[str, float]]] | None = None
         #: Steps whose window a resources check measures -> readings at its start and end.
         self.measured = {
             _reference(sc.steps, i, s.condition.over)
@@ -2396,10 +2397,7 @@ class _Run:
             kept = self._names(cond.robots)
             on = self._names(cond.on) if cond.on is not None else self.running
             on = [r for r in on if r in running and r not in kept]
-            fell_from = None
-            if cond.falling:
-                assert self.observer is not None
-                fell_from = indicators_before(self.observer.samples, self.action_wall)
+            fell_from = self._indicators_before_last_step() if cond.falling else None
             return history_problems(
                 probe.histories(on),
                 kept,
@@ -2415,6 +2413,15 @@ class _Run:
             robots = [r for r in self._names(cond.robots) if r in running]
             return address_problems(probe.neighbours(robots), probe.addresses(robots))
         raise AssertionError(f"{cond.kind} is not polled")
+
+    def _indicators_before_last_step(self) -> dict[str, dict[str, float]]:
+        """Each robot's indicators in the last samples before the last action step began,
+        worked out once per step (a polled check asks again and again)."""
+        if self._baseline is None or self._baseline[0] != self.action_wall:
+            assert self.observer is not None
+            seen = indicators_before(self.observer.samples, self.action_wall)
+            self._baseline = (self.action_wall, seen)
+        return self._baseline[1]
 
     def _rates(self) -> dict[tuple[str, str], float]:
         """(robot, peer) -> the share of robot's pings to peer the medium lets come back."""
