@@ -71,7 +71,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
-from netlab import naming
+from netlab import naming, procstat
 from netlab.analysis import count_updates, natural_order, read_run
 from netlab.errors import NetlabError
 from netlab.mobility import HALL, RandomWaypoint
@@ -2079,7 +2079,6 @@ class _Run:
         pid_of = getattr(self.lab, "daemon_pid", None)
         if pid_of is None:
             return {}
-        from netlab import procstat
 
         kids = procstat.children()
         out: dict[str, Any] = {}
@@ -2496,7 +2495,6 @@ class _Run:
         self.say(f"{'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
 
     def _resources(self, index: int, cond: Resources, res: CheckResult) -> None:
-        from netlab import procstat
 
         ref = _reference(self.sc.steps, index, cond.over)
         res.at = time.monotonic() - self.t0
