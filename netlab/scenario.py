@@ -2079,7 +2079,6 @@ class _Run:
         pid_of = getattr(self.lab, "daemon_pid", None)
         if pid_of is None:
             return {}
-
         kids = procstat.children()
         out: dict[str, Any] = {}
         for name in self.running:
@@ -2495,7 +2494,6 @@ class _Run:
         self.say(f"{'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
 
     def _resources(self, index: int, cond: Resources, res: CheckResult) -> None:
-
         ref = _reference(self.sc.steps, index, cond.over)
         res.at = time.monotonic() - self.t0
         before, after = self.usage.get(ref, ({}, {}))
