@@ -26,7 +26,9 @@ __all__ = [
     "DEFAULT_PORT",
     "DEVICE_TYPE",
     "MAX_DATAGRAM",
+    "MAX_ENCODED",
     "REJECT_REASONS",
+    "SEAL_RESERVE",
     "SERVER",
     "WANT_ALL",
     "Alive",
@@ -44,10 +46,17 @@ __all__ = [
     "encode_update_parts",
     "fleet_target",
     "max_service_json_bytes",
+    "parts_needed",
+    "service_json_size",
 ]
 
-#: Largest UDP payload SDfR sends or accepts; nothing encoded may exceed it.
+#: Largest UDP payload SDfR sends or accepts (no IP fragmentation on radio links).
 MAX_DATAGRAM = 1400
+#: Room every encoded datagram leaves for a seal (sdfr.auth): a keyed fleet then has exactly the
+#: limits of an open one, and a service accepted before a key was set still fits after.
+SEAL_RESERVE = 64
+#: Largest datagram `encode` and `encode_update_parts` produce.
+MAX_ENCODED = MAX_DATAGRAM - SEAL_RESERVE
 DEFAULT_GROUP = "239.255.255.250"
 DEFAULT_PORT = 1900
 DEVICE_TYPE = "urn:sdfr-org:device:robot:1"
@@ -210,7 +219,7 @@ _JSON_DECODER = json.JSONDecoder(parse_constant=_no_constant)
 
 
 def encode(msg: Message, *, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT) -> bytes:
-    """The datagram for `msg`; ValueError if a field is out of range or it exceeds MAX_DATAGRAM.
+    """The datagram for `msg`; ValueError if a field is out of range or it exceeds MAX_ENCODED.
 
     `group` and `port` fill the HOST header of M-SEARCH and NOTIFY (for a unicast search pass the
     peer's address and `multicast=False`).
@@ -258,22 +267,24 @@ def encode_update_parts(
 ) -> list[bytes]:
     """Split a whole service set into as few Update datagrams as greedy packing allows.
 
-    Parts are numbered 0..n-1 with the same total, each at most MAX_DATAGRAM bytes, and keep the
+    Parts are numbered 0..n-1 with the same total, each at most MAX_ENCODED bytes, and keep the
     order of `services`; an empty set is one part with no services.  ValueError when a single
     service cannot fit in a datagram alone, ids repeat, or the set needs more than 255 parts.
     """
     prefix = _update_prefix(origin, location, max_age, _host(group, port))
     _check_unique_ids(services)
     blobs = [_service_json(s) for s in services]
+    sizes = [len(b) for b in blobs]
+    ids = [s.id for s in services]
 
     # The header grows with the digits of the part total.  Start from a lower bound of the total
     # (so the digits only ever grow and end exact): one packing pass is the rule.
     fixed = len(prefix) + len(_update_suffix("", "", ""))
-    room = MAX_DATAGRAM - fixed - 1 - 1 - 2 - _BODY_WRAP  # most body one part could hold
-    estimate = max(1, -(-sum(map(len, blobs)) // room)) if room > 0 else 1
+    room = MAX_ENCODED - fixed - 1 - 1 - 2 - _BODY_WRAP  # most body one part could hold
+    estimate = max(1, -(-sum(sizes) // room)) if room > 0 else 1
     digits = len(str(estimate))
     while True:
-        groups = _pack(blobs, services, fixed + digits)
+        groups = _pack(sizes, ids, fixed + digits)
         if len(groups) > MAX_PARTS:
             raise ValueError(
                 f"{len(services)} services need {len(groups)} update parts, more than {MAX_PARTS}"
@@ -291,44 +302,64 @@ def encode_update_parts(
     return out
 
 
-def _pack(blobs: list[bytes], services: Sequence[Service], fixed: int) -> list[tuple[int, int]]:
-    """Greedy packing: (start, stop) slices of `blobs`, given `fixed`, the header bytes apart
-    from the digits of the part number and of the content length."""
+def _pack(sizes: Sequence[int], ids: Sequence[str], fixed: int) -> list[tuple[int, int]]:
+    """Greedy packing: (start, stop) slices of services whose compact JSON has `sizes`, given
+    `fixed`, the header bytes apart from the digits of the part number and of the content
+    length.  ValueError naming the service (from `ids`) that cannot fit a datagram alone."""
     groups: list[tuple[int, int]] = []
     start = 0
     body = _BODY_WRAP  # body bytes of the current part so far
     part_digits = 1
-    for i, blob in enumerate(blobs):
-        grown = body + len(blob) + (1 if i > start else 0)
-        if fixed + part_digits + len(str(grown)) + grown <= MAX_DATAGRAM:
+    for i, size in enumerate(sizes):
+        grown = body + size + (1 if i > start else 0)
+        if fixed + part_digits + len(str(grown)) + grown <= MAX_ENCODED:
             body = grown
             continue
         if i > start:  # close the current part and retry this service in a fresh one
             groups.append((start, i))
             start = i
             part_digits = len(str(len(groups) + 1))
-            grown = _BODY_WRAP + len(blob)
-            if fixed + part_digits + len(str(grown)) + grown <= MAX_DATAGRAM:
+            grown = _BODY_WRAP + size
+            if fixed + part_digits + len(str(grown)) + grown <= MAX_ENCODED:
                 body = grown
                 continue
-        room = MAX_DATAGRAM - fixed - part_digits - 4 - _BODY_WRAP
+        room = MAX_ENCODED - fixed - part_digits - 4 - _BODY_WRAP
         raise ValueError(
-            f"service {services[i].id!r} is {len(blob)} bytes of JSON; at most {room} fit in "
-            f"one update datagram ({MAX_DATAGRAM} bytes) with these headers"
+            f"service {ids[i]!r} is {size} bytes of JSON; at most {room} fit in "
+            f"one update datagram ({MAX_ENCODED} bytes) with these headers"
         )
-    groups.append((start, len(blobs)))
+    groups.append((start, len(sizes)))
     return groups
+
+
+@cache
+def _worst_fixed() -> int:
+    """Update header bytes with the longest headers (64-character robot id, 200-byte location,
+    part 255/255, longest HOST and numbers), apart from the part number and content length."""
+    origin = Origin(MAX_FLEET, "r" * 64, MAX_BOOT_ID, 2**53 - 1, "f" * 16)
+    prefix = _update_prefix(origin, "l" * MAX_LOCATION, MAX_MAX_AGE, "h" * MAX_HOST)
+    return len(prefix) + len(_update_suffix("", str(MAX_PARTS), ""))
+
+
+def service_json_size(service: Service) -> int:
+    """Bytes of `service`'s compact JSON in an Update (ValueError if it has no JSON form)."""
+    return len(_service_json(service))
+
+
+def parts_needed(sizes: Sequence[int]) -> int:
+    """Update parts a set of services whose JSON has these sizes needs, with the longest
+    headers any robot can have: a set is announceable anywhere iff this is <= MAX_PARTS.
+    ValueError if one of them cannot fit a datagram alone."""
+    return len(_pack(sizes, [f"#{i}" for i in range(len(sizes))], _worst_fixed()))
 
 
 @cache
 def max_service_json_bytes() -> int:
     """The largest compact service JSON that fits alone in one Update with the longest headers
     (64-character robot id, 200-byte location, part 255/255, longest HOST and numbers)."""
-    origin = Origin(MAX_FLEET, "r" * 64, MAX_BOOT_ID, 2**53 - 1, "f" * 16)
-    prefix = _update_prefix(origin, "l" * MAX_LOCATION, MAX_MAX_AGE, "h" * MAX_HOST)
-    fixed = len(prefix) + len(_update_suffix("255", "255", ""))
-    size = MAX_DATAGRAM - fixed - _BODY_WRAP
-    while fixed + len(str(size + _BODY_WRAP)) + size + _BODY_WRAP > MAX_DATAGRAM:
+    fixed = _worst_fixed() + len(str(MAX_PARTS))
+    size = MAX_ENCODED - fixed - _BODY_WRAP
+    while fixed + len(str(size + _BODY_WRAP)) + size + _BODY_WRAP > MAX_ENCODED:
         size -= 1
     return size
 
@@ -350,8 +381,8 @@ def check_service_fits(service: Service) -> None:
 
 def _finish(head: bytes, body: bytes, kind: str) -> bytes:
     size = len(head) + len(body)
-    if size > MAX_DATAGRAM:
-        raise ValueError(f"{kind} would be {size} bytes, more than MAX_DATAGRAM ({MAX_DATAGRAM})")
+    if size > MAX_ENCODED:
+        raise ValueError(f"{kind} would be {size} bytes, more than MAX_ENCODED ({MAX_ENCODED})")
     return head + body if body else head
 
 

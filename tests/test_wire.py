@@ -19,9 +19,11 @@ from sdfr.wire import (
     DEFAULT_GROUP,
     DEVICE_TYPE,
     MAX_DATAGRAM,
+    MAX_ENCODED,
     MAX_HOST,
     MAX_LOCATION,
     REJECT_REASONS,
+    SEAL_RESERVE,
     SERVER,
     WANT_ALL,
     Alive,
@@ -438,13 +440,14 @@ def test_update_parts_of_100_services() -> None:
     sizes = [len(json.dumps(s.to_json(), separators=(",", ":"))) for s in svcs]
     assert min(sizes) >= 130 and max(sizes) <= 180
     datagrams = encode_update_parts(ORIGIN, LOCATION, 1800, svcs)
-    assert 8 <= len(datagrams) <= 20
-    assert all(len(d) <= MAX_DATAGRAM for d in datagrams)
+    assert 8 <= len(datagrams) <= 25
+    # Each leaves room for a seal (sdfr.auth), so a keyed fleet has the same limits.
+    assert all(len(d) <= MAX_ENCODED == MAX_DATAGRAM - SEAL_RESERVE for d in datagrams)
     updates = [decode(d) for d in datagrams]
     assert [s for u in updates for s in u.services] == svcs  # type: ignore[union-attr]
     assert {u.parts for u in updates} == {len(datagrams)}  # type: ignore[union-attr]
     # Most parts are nearly full.
-    assert sum(len(d) for d in datagrams) > 0.85 * MAX_DATAGRAM * len(datagrams)
+    assert sum(len(d) for d in datagrams) > 0.85 * MAX_ENCODED * len(datagrams)
 
 
 def test_update_parts_are_fast() -> None:
@@ -504,7 +507,7 @@ def service_of_json_size(size: int) -> Service:
 def test_max_service_json_bytes_is_tight() -> None:
     """A service of exactly the limit fits with the longest possible headers, one more does not."""
     limit = max_service_json_bytes()
-    assert 500 < limit < MAX_DATAGRAM
+    assert 450 < limit < MAX_ENCODED
     worst = Origin(255, "r" * 64, 2**31 - 1, 2**53 - 1, "f" * 16)
     location = "l" * MAX_LOCATION
     group = "ffff:ffff:ffff:ffff:ffff:ffff:ffff:ffff"
@@ -512,7 +515,7 @@ def test_max_service_json_bytes_is_tight() -> None:
     fits = service_of_json_size(limit)
     check_service_fits(fits)
     data = encode(Update(worst, location, 86400, 254, 255, (fits,)), group=group, port=65535)
-    assert len(data) == MAX_DATAGRAM
+    assert len(data) == MAX_ENCODED
     too_big = service_of_json_size(limit + 1)
     with pytest.raises(ValidationError):
         check_service_fits(too_big)
