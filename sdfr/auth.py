@@ -1,0 +1,232 @@
+"""Authenticated datagrams: the fleet keyring, seals and replay windows. No I/O, no clock.
+
+A sealed datagram is an ordinary SDfR datagram with one more header line, always the last one
+before the blank line::
+
+    X-SDFR-AUTH: <key id> <counter> <mac>
+
+- key id: 8 lowercase hex characters naming the key (`key_id`), so a receiver holding several
+  keys (a rotation in progress) knows which one to check with;
+- counter: the sender's datagram counter, 1, 2, 3, ... within one boot of the sender.  The pair
+  (boot id, counter) never repeats: boot ids are new on every start (see `sdfr.store`), so
+  replays are recognised with a window per sender (`ReplayWindow`), as in RFC 7474;
+- mac: HMAC-SHA256 under the key, truncated to 128 bits, base64url without padding (22
+  characters), over a label and the whole datagram with only the mac and its line end left out:
+  every header, the boot id, the counter and the body are covered.
+
+The seal costs at most `wire.SEAL_RESERVE` bytes; the codec keeps that much room free in every
+datagram, so a keyed fleet has exactly the limits of an open one.  Without a key nothing is
+added and the wire is plain SSDP as before.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Literal, TypeAlias, get_args
+
+from sdfr.wire import MAX_DATAGRAM, SEAL_RESERVE, Reject
+
+__all__ = [
+    "AUTH_HEADER",
+    "KEY_BYTES",
+    "MODES",
+    "OPEN",
+    "REJECT_REASONS",
+    "Keyring",
+    "Mode",
+    "ReplayWindow",
+    "Sealed",
+    "check",
+    "key_id",
+    "seal",
+]
+
+#: Length of a fleet key in bytes (256 bits).
+KEY_BYTES = 32
+KID_CHARS = 8
+MAC_BYTES = 16
+MAC_CHARS = 22  # base64url of 16 bytes, without the padding
+MAX_COUNTER = 2**53
+AUTH_HEADER = b"X-SDFR-AUTH: "
+#: Domain separation: a key used for anything else never yields a valid SDfR seal.
+_LABEL = b"SDfR-auth-v1\0"
+_KID_LABEL = b"SDfR-key-id\0"
+_HEX = frozenset(b"0123456789abcdef")
+_B64URL = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_")
+
+#: Longest seal line, "\r\n" included: it must fit the room the codec leaves.
+SEAL_LINE_MAX = len(AUTH_HEADER) + KID_CHARS + 1 + len(str(MAX_COUNTER)) + 1 + MAC_CHARS + 2
+assert SEAL_LINE_MAX <= SEAL_RESERVE, (SEAL_LINE_MAX, SEAL_RESERVE)
+
+#: How a robot with keys treats the fleet (without keys the fleet is open, whatever the mode):
+#: - accept: sends unsigned, accepts signed and unsigned (step 1 of moving an open fleet to a
+#:   key: every robot gets the key before any robot signs);
+#: - sign: sends signed, still accepts unsigned (step 2: robots switch one by one);
+#: - enforce: sends signed, accepts only signed datagrams (step 3, and the default).
+Mode: TypeAlias = Literal["accept", "sign", "enforce"]
+MODES: tuple[Mode, ...] = get_args(Mode)
+
+#: Reasons `check` rejects a datagram for (counted like the codec's).
+REJECT_REASONS = ("unsigned", "unknown-key", "bad-mac", "bad-seal")
+
+
+def key_id(key: bytes) -> str:
+    """The public name of a key: 8 hex characters of a hash of it (not a secret)."""
+    return hashlib.sha256(_KID_LABEL + key).hexdigest()[:KID_CHARS]
+
+
+@dataclass(frozen=True, slots=True)
+class Keyring:
+    """The keys a robot accepts, the one it sends with, and the mode.
+
+    `keys` maps key id to key.  No keys: an open fleet (nothing signed, nothing checked).
+    """
+
+    keys: Mapping[str, bytes] = field(default_factory=dict)
+    primary: str | None = None
+    mode: Mode = "enforce"
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+        for kid, key in self.keys.items():
+            if len(key) != KEY_BYTES:
+                raise ValueError(f"key {kid} is {len(key)} bytes, not {KEY_BYTES}")
+            if key_id(key) != kid:
+                raise ValueError(f"key id {kid!r} does not name its key ({key_id(key)})")
+        if self.keys and self.primary not in self.keys:
+            raise ValueError(f"the primary key {self.primary!r} is not in the keyring")
+        if not self.keys and self.primary is not None:
+            raise ValueError("a primary key without keys")
+
+    @classmethod
+    def of(
+        cls, keys: Iterable[bytes], primary: bytes | None = None, mode: Mode = "enforce"
+    ) -> Keyring:
+        """A keyring of raw keys; the primary defaults to the first."""
+        ring = {key_id(k): k for k in keys}
+        if primary is not None:
+            ring.setdefault(key_id(primary), primary)
+        first = primary if primary is not None else next(iter(ring.values()), None)
+        return cls(ring, None if first is None else key_id(first), mode)
+
+    @property
+    def keyed(self) -> bool:
+        return bool(self.keys)
+
+    @property
+    def signs(self) -> bool:
+        """Whether datagrams go out sealed (with the primary key)."""
+        return self.keyed and self.mode != "accept"
+
+    @property
+    def accepts_unsigned(self) -> bool:
+        return not self.keyed or self.mode != "enforce"
+
+
+#: No keys: the open fleet.
+OPEN = Keyring()
+
+
+@dataclass(frozen=True, slots=True)
+class Sealed:
+    """A datagram whose seal checked out: the key it was sealed with and its counter."""
+
+    kid: str
+    counter: int
+
+
+def _mac(key: bytes, signed: bytes) -> bytes:
+    digest = hmac.digest(key, _LABEL + signed, "sha256")[:MAC_BYTES]
+    return base64.urlsafe_b64encode(digest)[:MAC_CHARS]
+
+
+def seal(data: bytes, key: bytes, counter: int) -> bytes:
+    """`data` with the seal line added; ValueError if it has no header end or grows too big."""
+    if not 1 <= counter <= MAX_COUNTER:
+        raise ValueError(f"counter must be 1..{MAX_COUNTER}, not {counter}")
+    end = data.find(b"\r\n\r\n")
+    if end < 0:
+        raise ValueError("not an SDfR datagram: no end of headers")
+    head, rest = data[: end + 2], data[end + 2 :]
+    prefix = b"%s%s %d " % (AUTH_HEADER, key_id(key).encode(), counter)
+    out = b"".join((head, prefix, _mac(key, head + prefix + rest), b"\r\n", rest))
+    if len(out) > MAX_DATAGRAM:
+        raise ValueError(f"sealed datagram would be {len(out)} bytes, more than {MAX_DATAGRAM}")
+    return out
+
+
+def check(data: bytes, keyring: Keyring) -> Sealed | Reject | None:
+    """Check the seal of a received datagram before anything else reads it.
+
+    Returns the seal when it is valid, None for an unsigned datagram the keyring lets through,
+    and a Reject otherwise.  Only the seal line is looked at; nothing else is parsed.
+    """
+    end = data.find(b"\r\n\r\n")
+    start = data.rfind(b"\n", 0, end) + 1 if end > 0 else 0
+    if end < 0 or not data.startswith(AUTH_HEADER, start):
+        if AUTH_HEADER[:-1] in data[: end if end >= 0 else len(data)]:
+            return Reject("bad-seal", "X-SDFR-AUTH is not the last header line")
+        if keyring.accepts_unsigned:
+            return None
+        return Reject("unsigned", "the fleet is keyed and the datagram carries no seal")
+    fields = data[start + len(AUTH_HEADER) : end].split(b" ")
+    if len(fields) != 3:
+        return Reject("bad-seal", "X-SDFR-AUTH is not '<key id> <counter> <mac>'")
+    kid, ctr, mac = fields
+    if (
+        len(kid) != KID_CHARS
+        or not _HEX.issuperset(kid)
+        or not 0 < len(ctr) <= 16
+        or not ctr.isdigit()
+        or len(mac) != MAC_CHARS
+        or not _B64URL.issuperset(mac)
+    ):
+        return Reject("bad-seal", "X-SDFR-AUTH is not '<key id> <counter> <mac>'")
+    counter = int(ctr)
+    if not 1 <= counter <= MAX_COUNTER:
+        return Reject("bad-seal", f"counter {counter} out of range")
+    key = keyring.keys.get(kid.decode())
+    if key is None:
+        return Reject("unknown-key", f"sealed with key {kid.decode()}, not in the keyring")
+    signed = data[: end - MAC_CHARS] + data[end + 2 :]
+    if not hmac.compare_digest(_mac(key, signed), mac):
+        return Reject("bad-mac", f"seal of key {kid.decode()} does not match")
+    return Sealed(kid.decode(), counter)
+
+
+WINDOW = 64
+_MASK = (1 << WINDOW) - 1
+
+
+@dataclass(slots=True)
+class ReplayWindow:
+    """The counters seen from one sender's boot: the highest, and which of the 63 below it.
+
+    A counter above the highest is new; one more than WINDOW below it, or seen already, is a
+    replay (or so late that it must be treated as one).
+    """
+
+    boot: int = -1
+    top: int = 0
+    seen: int = 0  # bit i: counter top - i was accepted
+
+    def fresh(self, boot: int, counter: int) -> bool:
+        """Whether (boot, counter) has not been accepted; a boot other than ours is new."""
+        if boot != self.boot or counter > self.top:
+            return True
+        back = self.top - counter
+        return back < WINDOW and not (self.seen >> back) & 1
+
+    def accept(self, boot: int, counter: int) -> None:
+        if boot != self.boot:
+            self.boot, self.top, self.seen = boot, counter, 1
+        elif counter > self.top:
+            self.seen = ((self.seen << (counter - self.top)) | 1) & _MASK
+            self.top = counter
+        else:
+            self.seen |= 1 << (self.top - counter)
