@@ -12,6 +12,7 @@ import random
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+from sdfr.auth import OPEN, Keyring
 from sdfr.model import Service
 from sdfr.protocol import Addr, Core, CoreConfig
 
@@ -62,6 +63,7 @@ class SimNet:
         services: Sequence[Service] = (),
         version: int | None = None,
         start: bool = True,
+        keyring: Keyring = OPEN,
         **cfg: object,
     ) -> Node:
         index = len(self.nodes) + 1
@@ -74,6 +76,7 @@ class SimNet:
             location=f"http://{addr[0]}:8701/description.json",
             version=version if version is not None else (1 if services else 0),
             services=services,
+            keyring=keyring,
         )
         node = Node(name, addr, core)
         self.nodes[name] = node
@@ -96,12 +99,20 @@ class SimNet:
             location=old.core.location,
             version=kw.get("version", old.core.version),  # type: ignore[arg-type]
             services=kw.get("services", old.core.services),  # type: ignore[arg-type]
+            keyring=old.core.keyring,
         )
         node = Node(name, old.addr, core)
         self.nodes[name] = node
         core.start(self.now)
         self._pump(node)
         return node
+
+    def move(self, name: str, host: str) -> None:
+        """The robot's address changes to `host` (its daemon tells the fleet at once)."""
+        node = self.nodes[name]
+        node.addr = (host, node.addr[1])
+        node.core.set_location(f"http://{host}:8701/description.json", self.now)
+        self._pump(node)
 
     def kill(self, name: str) -> None:
         """Silent death: the node stops sending and receiving."""
@@ -133,6 +144,12 @@ class SimNet:
         node = self.nodes[name]
         node.core.receive(data, src, self.now)
         self._pump(node)
+
+    def inject_all(self, data: bytes, src: Addr) -> None:
+        """An outsider on the medium multicasts `data` from `src`: every robot gets it now."""
+        for name, node in self.nodes.items():
+            if node.up:
+                self.inject(name, data, src)
 
     # -- running -------------------------------------------------------------------------
 

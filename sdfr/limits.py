@@ -1,0 +1,52 @@
+"""Token buckets, on the caller's clock: the protocol core's bounds on work and replies."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+
+@dataclass(slots=True)
+class TokenBucket:
+    """`rate` tokens a second, at most `burst` saved up; starts full."""
+
+    rate: float
+    burst: float
+    tokens: float = -1.0
+    stamp: float = 0.0
+
+    def take(self, now: float, n: float = 1.0) -> bool:
+        """Spend `n` tokens if there are that many; False (and nothing spent) otherwise."""
+        if self.tokens < 0:
+            self.tokens, self.stamp = self.burst, now
+        elif now > self.stamp:
+            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+            self.stamp = now
+        if self.tokens < n:
+            return False
+        self.tokens -= n
+        return True
+
+
+class KeyedBuckets:
+    """One bucket per key (a source address), at most `max_keys` of them: the least recently
+    used is forgotten first, which at worst gives that key a full bucket again."""
+
+    def __init__(self, rate: float, burst: float, max_keys: int) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.max_keys = max_keys
+        self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
+
+    def take(self, key: str, now: float, n: float = 1.0) -> bool:
+        bucket = self._buckets.get(key)
+        if bucket is None:
+            if len(self._buckets) >= self.max_keys:
+                self._buckets.popitem(last=False)
+            bucket = self._buckets[key] = TokenBucket(self.rate, self.burst)
+        else:
+            self._buckets.move_to_end(key)
+        return bucket.take(now, n)
+
+    def __len__(self) -> int:
+        return len(self._buckets)
