@@ -20,8 +20,11 @@ from typing import Any
 
 from sdfr.errors import SdfrError
 from sdfr.model import Service
+from sdfr.wire import MAX_BOOT_ID
 
 SCHEMA_VERSION = 1
+#: Boot ids count seconds from 2020-01-01 UTC (BOOTID.UPNP.ORG holds 31 bits: until 2088).
+BOOT_EPOCH = 1577836800
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -143,10 +146,19 @@ class Store:
             (key, value),
         )
 
-    def next_boot_id(self) -> int:
-        """A boot id larger than any this state directory handed out before."""
+    def next_boot_id(self, now: float) -> int:
+        """A boot id for a start at Unix time `now`: the seconds since 2020, or one more than
+        any this state directory handed out before if that is larger.
+
+        So it is new on every start even when the state directory is lost (a re-imaged
+        robot, a fresh container), as long as the clock is right; peers tell a robot whose
+        state and clock were both lost by a round trip, not by its boot id.
+        """
         with self._tx():
-            boot = int(self.get_meta("boot_id") or "0") + 1
+            last = int(self.get_meta("boot_id") or "0")
+            boot = max(last + 1, int(now) - BOOT_EPOCH)
+            if boot > MAX_BOOT_ID:  # a clock past 2088, or 2**31 restarts: start over
+                boot = 1
             self.set_meta("boot_id", str(boot))
         return boot
 
@@ -257,6 +269,13 @@ class Store:
             )
         self._parsed = parsed
         return out
+
+    def delete_peers(self, robot_ids: Iterable[str]) -> None:
+        """Forget robots (the history map was full)."""
+        ids = [(r,) for r in robot_ids]
+        if ids:
+            with self._tx():
+                self._db.executemany("DELETE FROM peers WHERE robot_id = ?", ids)
 
     def mark_all_unreachable(self) -> None:
         """At discovery start nothing is known to be reachable yet."""

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from sdfr.model import Service, service_digest
-from sdfr.store import PeerRecord, Store, StoreError
+from sdfr.store import BOOT_EPOCH, PeerRecord, Store, StoreError
 
 
 def peer(robot: str, services: tuple[Service, ...], reachable: bool = True) -> PeerRecord:
@@ -44,7 +44,27 @@ def test_registrations_and_versions_survive_reopening(tmp_path: Path) -> None:
 
 
 def test_boot_ids_only_grow(tmp_path: Path) -> None:
-    assert [Store(tmp_path).next_boot_id() for _ in range(3)] == [1, 2, 3]
+    now = 1_800_000_000.0
+    first = now - BOOT_EPOCH
+    # Three starts in one second still get three ids.
+    assert [Store(tmp_path).next_boot_id(now) for _ in range(3)] == [first, first + 1, first + 2]
+    # A clock that went back does not bring an old id back.
+    assert Store(tmp_path).next_boot_id(now - 1000) == first + 3
+
+
+def test_boot_ids_are_new_even_when_the_state_dir_is_lost(tmp_path: Path) -> None:
+    before = Store(tmp_path / "a").next_boot_id(1_800_000_000.0)
+    after = Store(tmp_path / "wiped").next_boot_id(1_800_000_060.0)
+    assert after > before
+    # A clock past what BOOTID can hold starts over rather than overflow.
+    assert Store(tmp_path / "far").next_boot_id(BOOT_EPOCH + 2.0**31) == 1
+
+
+def test_forgotten_peers_are_deleted(tmp_path: Path) -> None:
+    store = Store(tmp_path)
+    store.save_peers([peer("r1", ()), peer("r2", ())])
+    store.delete_peers(["r1", "r9"])
+    assert [p.robot_id for p in store.load_peers()] == ["r2"]
 
 
 def test_history_round_trip_and_cross_connection_visibility(tmp_path: Path) -> None:
