@@ -23,7 +23,7 @@ Trust (see also sdfr.auth):
   is parsed, and one whose counter was seen already in that boot (a replay) right after.
 - A claim that contradicts what a robot last proved is never applied on the word of one
   datagram: an older boot, a datagram after that boot's Byebye, an older version, a new
-  address while the old one answers our pings.  It is answered with a *challenge*, a ping to
+  address.  It is answered with a *challenge*, a ping to
   the address it came from, and the robot's answer to that (its boot, version and digest,
   fresh by construction) is what is believed.  So nothing is ever locked out for good.
 - A robot heard only through unsigned datagrams is *unproven* until it answers a ping: it is
@@ -591,13 +591,9 @@ class Core:
             and not peer.window.fresh(origin.boot_id, seal.counter)
         ):
             return self._refuse("replay")
-        if (
-            src != peer.address
-            and not proof
-            and peer.proven
-            and self._recently_answered(peer.address, now)
-        ):
-            # Its pings are answered where it is: prove the new address before moving there.
+        if src != peer.address and not proof and peer.proven:
+            # A robot moves only to where it answers a challenge: a datagram sent again
+            # from elsewhere must not move it (nor bring a dead one back there).
             self._challenge(peer, src, now)
             return self._refuse("other-address")
         if origin.boot_id != peer.boot_id:
@@ -672,10 +668,6 @@ class Core:
         self.counters.challenges += 1
         self._ping(peer, now, addr=addr, challenge=True)
         return True
-
-    def _recently_answered(self, addr: Addr, now: float) -> bool:
-        t = self._answered.get(addr)
-        return t is not None and now - t <= 2 * self.config.ping_interval
 
     def _address_proven(self, addr: Addr, now: float) -> bool:
         """Whether `addr` answered a ping of ours lately: it may get more than it sent."""

@@ -162,6 +162,23 @@ def test_a_replayed_alive_does_not_bring_back_a_dead_robot() -> None:
     assert net.nodes["r1"].core.counters.rejects["replay"] >= len(captured) - 1
 
 
+def test_an_open_fleet_does_not_bring_a_dead_robot_back_elsewhere() -> None:
+    """Without a key a replay cannot be told from the robot, but a replay from another address
+    must first answer a challenge there, which a mere replayer cannot."""
+    net = SimNet(seed=108)
+    names = fleet(net, 3, n_services=5)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    alive = last_sent(net, "r3", b"ssdp:alive")
+    net.kill("r3")
+    net.wait_until(lambda: not net.sees("r1", "r3"), 3 * BEACON + 0.5)
+    for _ in range(5):
+        net.inject_all(alive, OUTSIDER)
+        net.run_for(BEACON)
+    assert not net.sees("r1", "r3") and not net.sees("r2", "r3")
+    assert net.nodes["r1"].core.peers["r3"].address == net.nodes["r3"].addr
+
+
 def test_a_keyed_robot_that_lost_its_state_is_welcome_at_once() -> None:
     """A re-imaged robot comes back with a boot id below its last one (say, its clock was
     behind): only its answer to a challenge shows it is alive, and that is enough."""
