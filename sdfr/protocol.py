@@ -61,8 +61,10 @@ MESSAGE_TYPES = ("discovery", "response", "update", "alive", "byebye")
 MAX_PEERS = 1024
 #: Robots heard (unsigned) but never proven by a round trip, held at most.
 MAX_UNPROVEN = 256
-#: Update parts buffered for an unproven robot (the rest is fetched once it is proven).
-UNPROVEN_PARTS = 16
+#: Update parts buffered for unproven robots, shared among them (but at least
+#: UNPROVEN_PARTS_MIN each); the rest is fetched once a robot is proven.
+UNPROVEN_PARTS = 512
+UNPROVEN_PARTS_MIN = 4
 #: Challenges sent at most, per second and in a burst, to all addresses together.
 CHALLENGE_RATE = 20.0
 CHALLENGE_BURST = 128.0
@@ -258,6 +260,7 @@ class Core:
         self.digest = service_digest(self.services)
         self.keyring = keyring
         self.peers: dict[str, Peer] = {}
+        self._unproven = 0  # peers not proven (of self.peers)
         self.counters = Counters()
         #: The latest sender claiming our robot id, if any.
         self.conflict: Conflict | None = None
@@ -580,6 +583,8 @@ class Core:
                 digest=origin.digest,
                 proven=seal is not None,
             )
+            if seal is None:
+                self._unproven += 1
             if seal is not None:
                 peer.window.accept(origin.boot_id, seal.counter)
             else:
@@ -620,7 +625,7 @@ class Core:
 
     def _admit(self, sealed: bool, now: float) -> str | None:
         """Make room for a new robot; the reason it cannot have any, else None."""
-        if not sealed and sum(not p.proven for p in self.peers.values()) >= MAX_UNPROVEN:
+        if not sealed and self._unproven >= MAX_UNPROVEN:
             return "unproven-full"
         if len(self.peers) < MAX_PEERS:
             return None
@@ -635,6 +640,8 @@ class Core:
 
     def _forget(self, peer: Peer) -> None:
         del self.peers[peer.robot_id]
+        if not peer.proven:
+            self._unproven -= 1
         self._dirty.discard(peer.robot_id)
         for seq in [s for s, p in self._pings.items() if p.robot_id == peer.robot_id]:
             del self._pings[seq]
@@ -829,7 +836,8 @@ class Core:
             self.counters.rejects["inconsistent-parts"] += 1
             peer.fetch = None
             return
-        if not peer.proven and len(f.got) >= UNPROVEN_PARTS and msg.part not in f.got:
+        share = max(UNPROVEN_PARTS_MIN, UNPROVEN_PARTS // max(1, self._unproven))
+        if not peer.proven and len(f.got) >= share and msg.part not in f.got:
             self.counters.rejects["unproven-parts"] += 1
             return
         f.got[msg.part] = msg.services
@@ -878,6 +886,7 @@ class Core:
         self._settle_ping(peer, ok=True)
         if not peer.proven:
             peer.proven = True
+            self._unproven -= 1
             peer.misses = 0
             peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
             self._dirty.add(peer.robot_id)

@@ -471,9 +471,10 @@ def test_ten_thousand_fake_robots_cost_a_bounded_amount() -> None:
     assert pings_out < 0.1 * 10_000  # was 2.1 pings per datagram received
     assert flaps.total == 0, flaps.count
     assert all(not v.robot_id.startswith("fake") for v in core.take_dirty())
+    assert core._unproven == sum(not p.proven for p in core.peers.values())
     # Once the flood stops, the fakes age out.
     net.run_for(4 * BEACON)
-    assert sorted(core.peers) == ["r2", "r3"]
+    assert sorted(core.peers) == ["r2", "r3"] and core._unproven == 0
 
 
 def test_a_flood_from_one_source_is_cut_at_the_source() -> None:
