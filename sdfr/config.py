@@ -51,6 +51,9 @@ class Config:
     wifi_mode: str = "ibss"
     wifi_freq: int = 2412
     wifi_country: str | None = None
+    key_file: Path | None = None
+    auth: str | None = None
+    ssdp_interop: str = "auto"
 
     @property
     def effective_ping_interval(self) -> float:
@@ -97,6 +100,12 @@ class Config:
                 f"log_level: must be debug, info, warning or error, got {self.log_level!r}"
             )
         self._validate_wifi()
+        if self.auth is not None and self.auth not in AUTH_MODES:
+            raise ConfigError(
+                f"auth: must be {', '.join(AUTH_MODES[:-1])} or {AUTH_MODES[-1]}, got {self.auth!r}"
+            )
+        if self.ssdp_interop not in ("auto", "on", "off"):
+            raise ConfigError(f"ssdp_interop: must be auto, on or off, got {self.ssdp_interop!r}")
         return self
 
     def _validate_wifi(self) -> None:
@@ -129,6 +138,7 @@ class Config:
 
 
 WIFI_SECRET_MIN = 8
+AUTH_MODES = ("accept", "sign", "enforce")
 WIFI_FREQS: frozenset[int] = frozenset(
     # 2.4 GHz channels 1-13 and 14 (Japan).
     [2407 + 5 * ch for ch in range(1, 14)]
@@ -189,6 +199,14 @@ _HELP: dict[str, str] = {
     "wifi_mode": "ibss (IEEE 802.11 ad-hoc, WPA2-PSK) or mesh (802.11s, SAE) (default ibss)",
     "wifi_freq": "WiFi channel centre frequency in MHz, 2.4 or 5 GHz (default 2412, channel 1)",
     "wifi_country": "regulatory domain, ISO 3166-1 code such as DE (default: leave the system's)",
+    "key_file": "file holding the fleet key (`sdfr keys generate FILE`; readable by root only): "
+    "every datagram is then signed and checked. It seeds the keyring in STATE_DIR on the "
+    "first start; `sdfr keys` manages the keyring after that. Without a key the fleet is open",
+    "auth": "with a key: accept (send unsigned, accept both), sign (send signed, accept both) or "
+    "enforce (send signed, accept signed only) -- the steps of moving a fleet to a key without "
+    "a flag day (default: the keyring's mode; enforce for a new keyring)",
+    "ssdp_interop": "answer plain SSDP clients' ssdp:all searches (read-only): auto (only while "
+    "the fleet has no key), on or off (default auto)",
 }
 
 
@@ -209,7 +227,7 @@ def _coerce(name: str, raw: Any) -> Any:
         "reply_delay_max": float,
         "wifi_freq": int,
     }
-    if name in ("state_dir", "wifi_secret_file"):
+    if name in ("state_dir", "wifi_secret_file", "key_file"):
         return Path(str(raw))
     kind = kinds.get(name)
     if kind is None:

@@ -11,6 +11,8 @@ If the supervisor itself is killed, the kernel kills both layers
 from __future__ import annotations
 
 import ctypes
+import errno
+import fcntl
 import json
 import logging
 import os
@@ -19,8 +21,9 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
 
-from sdfr import netif, wifi
+from sdfr import keystore, netif, wifi
 from sdfr.config import Config, from_args, to_args
 from sdfr.errors import SdfrError
 from sdfr.store import Store
@@ -32,6 +35,7 @@ STOP_GRACE = 5.0
 BACKOFF_MAX = 5.0
 STABLE_AFTER = 30.0
 _PR_SET_PDEATHSIG = 1
+LOCK_NAME = "sdfrd.lock"
 
 
 def _die_with_parent() -> None:
@@ -48,6 +52,33 @@ def resolve(cfg: Config) -> Config:
     return replace(cfg, iface=iface, robot_id=robot_id)
 
 
+def lock_state_dir(state_dir: Path) -> int:
+    """Hold STATE_DIR/sdfrd.lock for as long as this daemon runs; its file descriptor.
+
+    Two daemons on one state directory would fight over its registrations and history. The
+    layers inherit the descriptor, so the lock is held until the last process is gone.
+    """
+    path = state_dir / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise SdfrError(f"state_dir: cannot open {path}: {exc.strerror or exc}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+            raise SdfrError(
+                f"state_dir {state_dir} is in use by another sdfrd (pid {holder}); give each "
+                "daemon its own --state-dir"
+            ) from None
+        raise SdfrError(f"state_dir: cannot lock {path}: {exc.strerror or exc}") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
 @dataclass
 class Layer:
     name: str
@@ -60,8 +91,9 @@ class Layer:
 
 
 class Supervisor:
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, lock_fd: int | None = None) -> None:
         self.cfg = cfg
+        self.lock_fd = lock_fd
         self.args = to_args(cfg)
         self.layers = [Layer(name, module) for name, module in LAYERS.items()]
         self.stopping = False
@@ -72,6 +104,7 @@ class Supervisor:
             [sys.executable, "-m", layer.module, *self.args],
             preexec_fn=_die_with_parent,
             stdin=subprocess.DEVNULL,
+            pass_fds=() if self.lock_fd is None else (self.lock_fd,),
         )
         layer.started = time.monotonic()
         log.info("%s layer started (pid %d)", layer.name, layer.proc.pid)
@@ -152,13 +185,22 @@ def main(argv: list[str] | None = None) -> int:
         cfg = resolve(from_args(argv))
         logging.getLogger().setLevel(cfg.log_level.upper())
         Store(cfg.state_dir).close()  # a state directory we cannot use is reported once, here
+        lock_fd = lock_state_dir(cfg.state_dir)
+        keyring = keystore.seed(cfg.state_dir, cfg.key_file, cfg.auth)
+        log.info(
+            "fleet %d: %s",
+            cfg.fleet,
+            f"keyed ({keyring.mode}, signing with {keyring.primary})"
+            if keyring.keyed
+            else "open (no key: datagrams are not authenticated)",
+        )
         # Join the fleet's WiFi before the layers start; a wired interface, or wifi = off, or
         # no secret configured: the radio is left alone.
         wifi.setup(cfg)
     except SdfrError as exc:
         print(f"sdfrd: {exc}", file=sys.stderr)
         return 2
-    return Supervisor(cfg).run()
+    return Supervisor(cfg, lock_fd).run()
 
 
 if __name__ == "__main__":

@@ -1,0 +1,297 @@
+"""Fleet keys on disk: key files, and the keyring a robot keeps in its state directory.
+
+The pure keyring (which keys, which one signs, the mode) is `sdfr.auth.Keyring`; this module
+reads and writes it.  A *key file* holds one key and is what an operator copies to robots
+(`sdfr keys generate FILE`); the *keyring* (STATE_DIR/keyring.json, mode 0600) is what a
+running daemon uses.  `key_file` seeds the keyring on the first start only: afterwards the
+keyring is authoritative, since a rotation (`sdfr keys install/use/remove`) changes it live
+and must survive restarts.  Owners: the supervisor seeds it; after that only the API layer
+writes it, and the discovery layer reloads it when told (or when it sees it changed).
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import logging
+import os
+import secrets
+import stat
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sdfr.auth import KEY_BYTES, MODES, OPEN, Keyring, Mode, key_id
+from sdfr.errors import ConfigError, SdfrError
+
+log = logging.getLogger("sdfr.keystore")
+
+KEYRING_NAME = "keyring.json"
+FORMAT_VERSION = 1
+
+
+class KeyringError(SdfrError):
+    """A keyring operation that cannot be done; `status` is the HTTP answer for it."""
+
+    def __init__(self, message: str, status: int = 409, field: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.status = status
+        self.field = field
+
+
+# -- key files -------------------------------------------------------------------------------
+
+
+def parse_key(text: str, where: str = "key") -> bytes:
+    """A key from its base64 text (standard or URL-safe, padding optional)."""
+    raw = "".join(text.split())
+    if not raw:
+        raise ConfigError(f"{where}: no key (expected base64 of {KEY_BYTES} bytes)")
+    try:
+        std = raw.rstrip("=").replace("-", "+").replace("_", "/")
+        key = base64.b64decode(std + "=" * (-len(std) % 4), validate=True)
+    except (binascii.Error, ValueError):
+        raise ConfigError(f"{where}: not base64 (expected base64 of {KEY_BYTES} bytes)") from None
+    if len(key) != KEY_BYTES:
+        raise ConfigError(f"{where}: the key is {len(key)} bytes, not {KEY_BYTES}")
+    return key
+
+
+def read_key_file(path: Path) -> bytes:
+    """The key in a key file: one base64 line; lines starting with # and blank lines aside."""
+    try:
+        st = path.stat()
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"key_file: {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) else "not text"
+        raise ConfigError(f"key_file: cannot read {path}: {reason}") from None
+    lines = [ln.strip() for ln in text.splitlines()]
+    keys = [ln for ln in lines if ln and not ln.startswith("#")]
+    if len(keys) != 1:
+        found = "no key" if not keys else f"{len(keys)} key lines"
+        raise ConfigError(f"key_file: {path} holds {found}; expected exactly one base64 line")
+    key = parse_key(keys[0], f"key_file: {path}")
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        log.warning(
+            "key_file: %s can be read by other users (mode %o); make it chmod 600",
+            path,
+            stat.S_IMODE(st.st_mode),
+        )
+    return key
+
+
+def key_text(key: bytes) -> str:
+    return base64.b64encode(key).decode()
+
+
+def generate_key_file(path: Path, *, force: bool = False) -> str:
+    """Write a new random key to `path` (mode 0600); its key id.  Never overwrites a file
+    unless `force`."""
+    key = secrets.token_bytes(KEY_BYTES)
+    kid = key_id(key)
+    stamp = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    body = f"# SDfR fleet key {kid}, generated {stamp}\n{key_text(key)}\n".encode()
+    if not force and (path.exists() or path.is_symlink()):
+        raise ConfigError(f"{path} exists already; not overwriting a key (use --force)")
+    _write_private(path, body, exclusive=not force)
+    return kid
+
+
+def _write_private(path: Path, body: bytes, *, exclusive: bool) -> None:
+    """Write `body` to `path`, mode 0600, durably; replace atomically unless `exclusive`."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if exclusive:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            target = path
+        else:
+            target = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, body)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        if target != path:
+            os.replace(target, path)
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except FileExistsError:
+        raise ConfigError(f"{path} exists already; not overwriting a key (use --force)") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+# -- the keyring in the state directory ------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class StoredKeyring:
+    """The keyring as stored: the keyring itself and when each key was installed."""
+
+    keyring: Keyring = OPEN
+    installed: Mapping[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        ring = self.keyring
+        return {
+            "version": FORMAT_VERSION,
+            "mode": ring.mode,
+            "primary": ring.primary,
+            "keys": [
+                {"id": kid, "key": key_text(key), "installed": self.installed.get(kid)}
+                for kid, key in sorted(ring.keys.items())
+            ],
+        }
+
+
+def keyring_path(state_dir: Path) -> Path:
+    return state_dir / KEYRING_NAME
+
+
+def load(state_dir: Path) -> StoredKeyring:
+    """The stored keyring; an empty one (an open fleet) when there is none."""
+    path = keyring_path(state_dir)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return StoredKeyring()
+    except OSError as exc:
+        raise SdfrError(f"keyring: cannot read {path}: {exc.strerror or exc}") from None
+    try:
+        obj = json.loads(text)
+        if not isinstance(obj, dict) or obj.get("version") != FORMAT_VERSION:
+            raise ValueError(f"not an SDfR keyring of format {FORMAT_VERSION}")
+        mode = obj.get("mode")
+        if mode not in MODES:
+            raise ValueError(f"mode {mode!r} is not one of {', '.join(MODES)}")
+        keys: dict[str, bytes] = {}
+        installed: dict[str, float] = {}
+        for item in obj.get("keys", []):
+            key = parse_key(str(item["key"]), "key")
+            kid = key_id(key)
+            if item.get("id") != kid:
+                raise ValueError(f"key {item.get('id')!r} is not the key stored under it")
+            keys[kid] = key
+            if isinstance(item.get("installed"), int | float):
+                installed[kid] = float(item["installed"])
+        ring = Keyring(keys, obj.get("primary") if keys else None, mode)
+    except (ValueError, KeyError, TypeError, ConfigError) as exc:
+        raise SdfrError(
+            f"keyring: {path} is damaged ({exc}); restore it, or remove it and start sdfrd "
+            "with key_file"
+        ) from None
+    return StoredKeyring(ring, installed)
+
+
+def load_keyring(state_dir: Path) -> Keyring:
+    return load(state_dir).keyring
+
+
+def save(state_dir: Path, stored: StoredKeyring) -> None:
+    """Write the keyring (mode 0600) durably and atomically: a power cut leaves the old one or
+    the new one, never a mix."""
+    body = (json.dumps(stored.to_json(), indent=2) + "\n").encode()
+    try:
+        _write_private(keyring_path(state_dir), body, exclusive=False)
+    except ConfigError as exc:
+        raise SdfrError(f"keyring: {exc}") from None
+
+
+def seed(state_dir: Path, key_file: Path | None, mode: str | None) -> Keyring:
+    """At start: the keyring the daemon runs with.
+
+    A keyring with keys is authoritative (a rotation may have replaced the key in
+    `key_file`); `mode`, when given, replaces its mode.  An empty keyring takes the key of
+    `key_file`, in `mode` (default enforce).  Neither: the fleet is open.
+    """
+    stored = load(state_dir)
+    ring = stored.keyring
+    if mode is not None and mode not in MODES:
+        raise ConfigError(f"auth: must be one of {', '.join(MODES)}, got {mode!r}")
+    if ring.keyed:
+        if key_file is not None:
+            key = read_key_file(key_file)
+            if key_id(key) not in ring.keys:
+                log.warning(
+                    "key_file %s holds key %s, which the keyring in %s does not: the keyring "
+                    "is used (rotated since?); update key_file",
+                    key_file,
+                    key_id(key),
+                    keyring_path(state_dir),
+                )
+        if mode is not None and mode != ring.mode:
+            log.info("auth: mode %s (was %s)", mode, ring.mode)
+            stored = replace(stored, keyring=replace(ring, mode=mode))
+            save(state_dir, stored)
+        return stored.keyring
+    if key_file is None:
+        return OPEN
+    key = read_key_file(key_file)
+    new_mode: Mode = mode if mode is not None else "enforce"
+    stored = StoredKeyring(Keyring.of([key], mode=new_mode), {key_id(key): time.time()})
+    save(state_dir, stored)
+    log.info("keyring: key %s from %s, mode %s", key_id(key), key_file, new_mode)
+    return stored.keyring
+
+
+# -- changes on a running daemon (the API layer) ---------------------------------------------
+
+
+def install(stored: StoredKeyring, key: bytes, now: float) -> tuple[StoredKeyring, bool]:
+    """Add a key (accepted from now on, not yet used to sign); (new keyring, whether it is new).
+
+    The first key of a robot that had none becomes its primary in mode accept: the robot
+    keeps talking to its unkeyed peers until told `mode sign`, then `mode enforce`.
+    """
+    ring = stored.keyring
+    kid = key_id(key)
+    if kid in ring.keys:
+        return stored, False
+    keys = {**ring.keys, kid: key}
+    new = Keyring(keys, ring.primary, ring.mode) if ring.keyed else Keyring(keys, kid, "accept")
+    return StoredKeyring(new, {**stored.installed, kid: now}), True
+
+
+def use(stored: StoredKeyring, kid: str) -> StoredKeyring:
+    """Sign with key `kid` from now on."""
+    ring = stored.keyring
+    if kid not in ring.keys:
+        raise KeyringError(f"no key {kid!r} in the keyring; `sdfr keys list` shows them", 404, "id")
+    return replace(stored, keyring=Keyring(ring.keys, kid, ring.mode))
+
+
+def remove(stored: StoredKeyring, kid: str) -> StoredKeyring:
+    """Stop accepting key `kid`; never the key in use (use another one first)."""
+    ring = stored.keyring
+    if kid not in ring.keys:
+        raise KeyringError(f"no key {kid!r} in the keyring; `sdfr keys list` shows them", 404, "id")
+    if kid == ring.primary:
+        raise KeyringError(
+            f"key {kid} is the one this robot signs with: `sdfr keys use` another key first "
+            "(the last key of a keyring cannot be removed)",
+            409,
+            "id",
+        )
+    keys = {k: v for k, v in ring.keys.items() if k != kid}
+    installed = {k: v for k, v in stored.installed.items() if k != kid}
+    return StoredKeyring(Keyring(keys, ring.primary, ring.mode), installed)
+
+
+def set_mode(stored: StoredKeyring, mode: str) -> StoredKeyring:
+    if mode not in MODES:
+        raise KeyringError(f"mode must be one of {', '.join(MODES)}, not {mode!r}", 422, "mode")
+    ring = stored.keyring
+    if not ring.keyed:
+        raise KeyringError("the keyring has no key: `sdfr keys install FILE` first", 409, "mode")
+    return replace(stored, keyring=replace(ring, mode=mode))
