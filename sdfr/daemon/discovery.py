@@ -15,10 +15,12 @@ import signal
 import socket
 import struct
 import time
+from collections import deque
+from collections.abc import Callable
 from ipaddress import IPv4Address
 from pathlib import Path
 
-from sdfr import netif
+from sdfr import keystore, netif
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import Config, from_args, split_hostport
 from sdfr.daemon.arp import ArpSocket, Netlink
@@ -30,6 +32,9 @@ log = logging.getLogger("sdfrd.discovery")
 
 STATUS_PERIOD = 1.0
 CONTROL_NAME = "discovery.sock"
+#: Failures of the layer's callbacks within this many seconds make /health say "failing".
+ERROR_WINDOW = 60.0
+_INTEROP = {"auto": None, "on": True, "off": False}
 
 
 def open_multicast_socket(cfg: Config, iface: str) -> socket.socket:
@@ -66,8 +71,13 @@ class DiscoveryLayer:
         self.loop = asyncio.get_running_loop()
         self.clock_offset = time.time() - time.monotonic()
         self.started = time.time()
-        self.boot_id = store.next_boot_id()
+        self.boot_id = store.next_boot_id(time.time())
         version, services = store.local_state()
+        self.keyring_path = cfg.state_dir / keystore.KEYRING_NAME
+        self._keyring_stamp = self._stamp()
+        keyring = keystore.load_keyring(cfg.state_dir)
+        self._errors: deque[float] = deque()
+        self._last_error: tuple[float, str] | None = None
         self.address = netif.ipv4(self.iface) or ""
         self.core = Core(
             CoreConfig(
@@ -80,12 +90,14 @@ class DiscoveryLayer:
                 reply_delay_max=cfg.reply_delay_max,
                 group=cfg.group,
                 port=cfg.port,
+                ssdp_interop=_INTEROP[cfg.ssdp_interop],
             ),
             boot_id=self.boot_id,
             rng=random.Random(),
             location=self._location(),
             version=version,
             services=services,
+            keyring=keyring,
         )
         self.core.restore(self._restore_views())
         store.mark_all_unreachable()
@@ -278,14 +290,31 @@ class DiscoveryLayer:
     async def _periodic(self) -> None:
         while True:
             await asyncio.sleep(STATUS_PERIOD)
-            try:
-                self._check_address()
-                self._reload_services()
-                self._write_status()
-            except Exception:  # keep the layer alive; the next period retries
-                log.exception("periodic duties failed")
+            self._guard("periodic duties", self._check_address)
+            self._guard("reloading the services", self._reload_services)
+            self._guard("reloading the keyring", self._reload_keyring)
+            self._guard("writing the status", self._write_status)
+
+    def _guard(self, what: str, duty: Callable[[], None]) -> None:
+        """Run a callback's work; a failure is logged and counted (for /health), and the
+        layer goes on: one bad datagram or a full disk must not stop discovery."""
+        try:
+            duty()
+        except Exception as exc:
+            now = time.time()
+            self._errors.append(now)
+            while self._errors and self._errors[0] < now - ERROR_WINDOW:
+                self._errors.popleft()
+            message = f"{what} failed: {type(exc).__name__}: {exc}"
+            if self._last_error is None or self._last_error[1] != message:
+                log.exception("%s", message)  # each new failure once, with its traceback
+            self._last_error = (now, message)
 
     def _on_readable(self) -> None:
+        self._guard("receiving", self._receive)
+        self._guard("sending", self._pump)
+
+    def _receive(self) -> None:
         now = time.monotonic()
         for _ in range(256):
             try:
@@ -302,7 +331,6 @@ class DiscoveryLayer:
         if self.addressing is not None and self.core.arrivals != self._arrivals:
             self._arrivals = self.core.arrivals
             self.addressing.refresh(now)
-        self._pump()
         self._pump_addr()
 
     def _on_control(self) -> None:
@@ -313,13 +341,14 @@ class DiscoveryLayer:
                 break
             except OSError:
                 break
-        self._reload_services()
-        self._pump()
+        self._guard("reloading the keyring", self._reload_keyring)
+        self._guard("reloading the services", self._reload_services)
+        self._guard("sending", self._pump)
 
     def _on_timer(self) -> None:
         self._timer = None
-        self.core.handle_timer(time.monotonic())
-        self._pump()
+        self._guard("timer", lambda: self.core.handle_timer(time.monotonic()))
+        self._guard("sending", self._pump)
 
     def _pump(self) -> None:
         """Send what the core wants sent, persist what changed, re-arm the one timer."""
@@ -350,6 +379,10 @@ class DiscoveryLayer:
 
     def _flush(self) -> None:
         self._flush_pending = False
+        self._guard("saving the history map", self._save)
+
+    def _save(self) -> None:
+        self.store.delete_peers(self.core.take_removed())
         views = self.core.take_dirty()
         if not views:
             return
@@ -372,6 +405,29 @@ class DiscoveryLayer:
             )
             for v in views
         )
+
+    def _stamp(self) -> tuple[int, int, int] | None:
+        try:
+            st = self.keyring_path.stat()
+        except FileNotFoundError:
+            return None
+        return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+    def _reload_keyring(self) -> None:
+        """The API layer rewrites keyring.json (sdfr keys ...): take the new keyring."""
+        stamp = self._stamp()
+        if stamp == self._keyring_stamp:
+            return
+        keyring = keystore.load_keyring(self.cfg.state_dir)
+        self._keyring_stamp = stamp
+        if keyring != self.core.keyring:
+            self.core.set_keyring(keyring)
+            log.info(
+                "keyring: %s, sending with %s, accepting %s",
+                keyring.mode if keyring.keyed else "open (no key)",
+                keyring.primary if keyring.signs else "no key",
+                ", ".join(sorted(keyring.keys)) or "unsigned datagrams only",
+            )
 
     def _reload_services(self) -> None:
         version = self.store.local_version()
@@ -412,9 +468,47 @@ class DiscoveryLayer:
                     "bytes_in": c.bytes_in,
                     "bytes_out": c.bytes_out,
                     "rejects": dict(c.rejects),
+                    "challenges": c.challenges,
                 },
+                "auth": self._auth_status(),
+                "robot_id_conflict": self._conflict_status(),
+                "errors": self._error_status(),
             }
         )
+
+    def _auth_status(self) -> dict[str, object]:
+        ring = self.core.keyring
+        return {
+            "mode": ring.mode if ring.keyed else "open",
+            "primary": ring.primary,
+            "keys": sorted(ring.keys),
+            "received": dict(self.core.counters.verified),
+            "ssdp_interop": self.core.ssdp_interop,
+        }
+
+    def _conflict_status(self) -> dict[str, object] | None:
+        c = self.core.conflict
+        if c is None:
+            return None
+        return {
+            "address": c.address,
+            "boot_id": c.boot_id,
+            "last_seen": c.last_seen + self.clock_offset,
+            "count": c.count,
+        }
+
+    def _error_status(self) -> dict[str, object]:
+        now = time.time()
+        while self._errors and self._errors[0] < now - ERROR_WINDOW:
+            self._errors.popleft()
+        last = self._last_error
+        return {
+            "recent": len(self._errors),
+            "last": None if last is None else last[1],
+            "last_at": None if last is None else last[0],
+            # Not a crash, but as bad: the fleet cannot see our services.
+            "persistent": self.core.announce_error,
+        }
 
     def _addressing_status(self) -> dict[str, object]:
         m = self.addressing
