@@ -24,9 +24,10 @@ from typing import Any
 
 from aiohttp import web
 
-from sdfr import __version__
+from sdfr import __version__, auth, keystore, wire
 from sdfr.config import Config
-from sdfr.errors import ValidationError
+from sdfr.errors import ConfigError, ValidationError
+from sdfr.keystore import KeyringError, StoredKeyring
 from sdfr.model import Service
 from sdfr.store import PeerRecord, Store, StoreError
 from sdfr.wire import check_service_fits
@@ -55,6 +56,8 @@ LATENCY_BUCKETS = (
 )
 #: A registration is at most one datagram; a request body never needs more than this.
 MAX_BODY = 64 * 1024
+#: Callback failures of the discovery layer within a minute that make /health say "failing".
+FAILING_AFTER = 3
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
@@ -125,7 +128,7 @@ async def _errors_as_json(request: web.Request, handler: Handler) -> web.StreamR
         return await handler(request)
     except ValidationError as exc:
         return _error(422, exc.message, exc.field)
-    except RequestError as exc:
+    except (RequestError, KeyringError) as exc:
         return _error(exc.status, exc.message, exc.field)
     except web.HTTPException as exc:
         if exc.status < 400:
@@ -232,6 +235,7 @@ class StoreView:
         self._local_version = -1  # versions start at 0: the first read loads
         self._local: list[Service] = []
         self._local_body: bytes | None = None
+        self._sizes: dict[str, int] = {}  # service id -> its JSON size (ids are never reused)
 
     def peers(self) -> list[PeerRecord]:
         """The history map. Only other connections write it, so `data_version` validates it."""
@@ -259,6 +263,18 @@ class StoreView:
             self._local_version, self._local = self.store.local_state()
             self._local_body = None
         return self._local_version, self._local
+
+    def parts_with(self, extra: Service) -> int:
+        """Update parts the local set plus `extra` needs (with the longest headers any robot
+        can have); each service's JSON size is computed once."""
+        _, services = self.local()
+        sizes = self._sizes
+        if len(sizes) > 2 * len(services) + 64:  # drop the sizes of services long gone
+            sizes = self._sizes = {s.id: sizes[s.id] for s in services if s.id in sizes}
+        for s in services:
+            if s.id not in sizes:
+                sizes[s.id] = wire.service_json_size(s)
+        return wire.parts_needed([*(sizes[s.id] for s in services), wire.service_json_size(extra)])
 
     def services_body(self) -> bytes:
         version, services = self.local()
@@ -336,6 +352,16 @@ async def publish(request: web.Request) -> web.Response:
         raise ValidationError("id", "is assigned by the robot; leave it out")
     service = Service.from_json(obj, service_id=secrets.token_hex(6))
     check_service_fits(service)
+    # What the fleet can never see must not be acknowledged: one announcement is at most
+    # MAX_PARTS datagrams.
+    needed = state.view.parts_with(service)
+    if needed > wire.MAX_PARTS:
+        raise RequestError(
+            507,
+            f"this robot's services would need {needed} update parts, more than the "
+            f"{wire.MAX_PARTS} one announcement can carry; unpublish some or make them smaller",
+            "services",
+        )
     for _ in range(3):
         try:
             version = state.store.add_service(service)
@@ -497,17 +523,163 @@ async def self_info(request: web.Request) -> web.Response:
     )
 
 
+def _int(value: object) -> int:
+    return value if isinstance(value, int) and not isinstance(value, bool) else 0
+
+
+def discovery_error(status: Mapping[str, Any]) -> str | None:
+    """Why the discovery layer, though alive, is failing (None when it is not): its callbacks
+    failed FAILING_AFTER times within a minute, or it cannot announce our services."""
+    errors = _mapping(status.get("errors"))
+    persistent = errors.get("persistent")
+    if isinstance(persistent, str) and persistent:
+        return persistent
+    last = errors.get("last")
+    if _int(errors.get("recent")) >= FAILING_AFTER and isinstance(last, str):
+        return last
+    return None
+
+
+def health_warnings(status: Mapping[str, Any], now: float | None = None) -> list[str]:
+    """What an operator should look at while the daemon is up."""
+    out = []
+    conflict = _mapping(status.get("robot_id_conflict"))
+    if conflict:
+        seen = conflict.get("last_seen")
+        ago = (
+            f", {max(0.0, (time.time() if now is None else now) - seen):.0f} s ago"
+            if isinstance(seen, int | float)
+            else ""
+        )
+        out.append(
+            f"another sender claims this robot's id {status.get('robot_id')}: "
+            f"{conflict.get('address')} (boot {conflict.get('boot_id')}{ago}, "
+            f"{_int(conflict.get('count'))} datagrams); give each daemon its own --robot-id"
+        )
+    mode = _mapping(status.get("auth")).get("mode")
+    if mode in ("accept", "sign"):
+        out.append(
+            f"keyring mode {mode}: unsigned datagrams are accepted; finish with "
+            "`sdfr keys mode enforce` on every robot"
+        )
+    return out
+
+
 async def health(request: web.Request) -> web.Response:
     disc = discovery_state(_state(request).store)
+    failing = discovery_error(disc.status) if disc.up else None
+    warnings = health_warnings(disc.status) if disc.up else []
+    ok = disc.up and failing is None
     return _json_response(
         {
-            "status": "ok" if disc.up else "degraded",
+            "status": "degraded" if not ok else "warning" if warnings else "ok",
             "api": "up",
-            "discovery": "up" if disc.up else "down",
+            "discovery": "failing" if failing else "up" if disc.up else "down",
             "discovery_heartbeat_age": disc.heartbeat_age,
+            "discovery_error": failing,
+            "auth": _mapping(disc.status.get("auth")).get("mode"),
+            "warnings": warnings,
         },
-        status=200 if disc.up else 503,
+        status=200 if ok else 503,
     )
+
+
+# -- handlers: the fleet keyring (unix socket only) --------------------------------------------
+
+
+def _need_unix_socket(request: web.Request) -> None:
+    """Key management is for whoever may open STATE_DIR/api.sock (its file mode says who),
+    never for any program that can reach a TCP port."""
+    transport = request.transport
+    sock = transport.get_extra_info("socket") if transport is not None else None
+    if sock is None or sock.family != socket.AF_UNIX:
+        path = _state(request).cfg.state_dir / "api.sock"
+        raise RequestError(
+            403,
+            f"key management is only available on the unix socket {path} "
+            "(sdfr keys --state-dir DIR, or --socket PATH)",
+        )
+
+
+def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
+    ring = stored.keyring
+    received = _mapping(_mapping(state.store.read_status().get("auth")).get("received"))
+    interop = state.cfg.ssdp_interop
+    return {
+        "mode": ring.mode if ring.keyed else "open",
+        "primary": ring.primary,
+        "keyed": ring.keyed,
+        "ssdp_interop": interop == "on" or (interop == "auto" and not ring.keyed),
+        "keys": [
+            {
+                "id": kid,
+                "primary": kid == ring.primary,
+                "installed": stored.installed.get(kid),
+                "received": _int(received.get(kid)),
+            }
+            for kid in sorted(ring.keys)
+        ],
+    }
+
+
+def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
+    keystore.save(state.cfg.state_dir, stored)
+    notify_discovery(state.cfg.state_dir)
+    ring = stored.keyring
+    log.info("keyring: %s; mode %s, signing with %s", what, ring.mode, ring.primary)
+
+
+async def keys_list(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = _state(request)
+    return _json_response(_keys_json(state, keystore.load(state.cfg.state_dir)))
+
+
+async def keys_install(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = _state(request)
+    obj = await _read_json(request)
+    if not isinstance(obj, dict) or set(obj) != {"key"} or not isinstance(obj["key"], str):
+        raise ValidationError("key", 'expected {"key": "<base64 of 32 bytes>"}')
+    try:
+        key = keystore.parse_key(obj["key"], "key")
+    except ConfigError as exc:
+        raise ValidationError("key", str(exc).removeprefix("key: ")) from None
+    stored, added = keystore.install(keystore.load(state.cfg.state_dir), key, time.time())
+    kid = auth.key_id(key)
+    if added:
+        _save_keyring(state, stored, f"key {kid} installed")
+    body = {"id": kid, **_keys_json(state, stored)}
+    return _json_response(body, status=201 if added else 200)
+
+
+async def keys_use(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = _state(request)
+    kid = request.match_info["id"]
+    stored = keystore.use(keystore.load(state.cfg.state_dir), kid)
+    _save_keyring(state, stored, f"signing with key {kid}")
+    return _json_response(_keys_json(state, stored))
+
+
+async def keys_remove(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = _state(request)
+    kid = request.match_info["id"]
+    stored = keystore.remove(keystore.load(state.cfg.state_dir), kid)
+    _save_keyring(state, stored, f"key {kid} removed")
+    return web.Response(status=204)
+
+
+async def keys_mode(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = _state(request)
+    obj = await _read_json(request)
+    if not isinstance(obj, dict) or set(obj) != {"mode"} or not isinstance(obj["mode"], str):
+        raise ValidationError("mode", 'expected {"mode": "accept" | "sign" | "enforce"}')
+    stored = keystore.set_mode(keystore.load(state.cfg.state_dir), obj["mode"])
+    _save_keyring(state, stored, f"mode {obj['mode']}")
+    return _json_response(_keys_json(state, stored))
 
 
 # -- /metrics ----------------------------------------------------------------------------------
@@ -556,7 +728,10 @@ def metrics_text(state: ApiState) -> str:
         value = _number(counters.get(f"bytes_{direction}", 0))
         out.append(f'sdfr_bytes_total{{direction="{direction}"}} {value}')
     family(
-        "sdfr_rejects_total", "counter", "Datagrams rejected as malformed or foreign, by reason."
+        "sdfr_rejects_total",
+        "counter",
+        "Datagrams rejected (malformed, foreign, unauthenticated, replayed, refused or "
+        "rate-limited), by reason.",
     )
     for reason, count in sorted(_mapping(counters.get("rejects")).items()):
         out.append(f'sdfr_rejects_total{{reason="{_label(reason)}"}} {_number(count)}')
@@ -568,6 +743,33 @@ def metrics_text(state: ApiState) -> str:
     out.append(f"sdfr_local_services {len(local)}")
     family("sdfr_discovery_up", "gauge", "1 when the discovery layer is alive and heartbeating.")
     out.append(f"sdfr_discovery_up {int(disc.up)}")
+    family(
+        "sdfr_discovery_errors",
+        "gauge",
+        "Failures of the discovery layer's callbacks in the last minute.",
+    )
+    out.append(f"sdfr_discovery_errors {_int(_mapping(disc.status.get('errors')).get('recent'))}")
+    auth = _mapping(disc.status.get("auth"))
+    family("sdfr_auth_mode", "gauge", "The keyring's mode (open: no key).")
+    mode = auth.get("mode")
+    for name in ("open", "accept", "sign", "enforce"):
+        out.append(f'sdfr_auth_mode{{mode="{name}"}} {int(mode == name)}')
+    family("sdfr_auth_verified_total", "counter", "Datagrams whose seal checked out, by key id.")
+    for kid, count in sorted(_mapping(auth.get("received")).items()):
+        out.append(f'sdfr_auth_verified_total{{key="{_label(kid)}"}} {_number(count)}')
+    family(
+        "sdfr_challenges_total",
+        "counter",
+        "Pings sent to check a claim before believing it (a new robot, an older boot, ...).",
+    )
+    out.append(f"sdfr_challenges_total {_number(counters.get('challenges', 0))}")
+    family(
+        "sdfr_robot_id_conflicts_total",
+        "counter",
+        "Datagrams from another sender claiming this robot's id.",
+    )
+    conflict = _mapping(disc.status.get("robot_id_conflict"))
+    out.append(f"sdfr_robot_id_conflicts_total {_int(conflict.get('count'))}")
     family(
         "sdfr_api_request_seconds",
         "histogram",
@@ -742,15 +944,72 @@ def openapi_document() -> dict[str, Any]:
         },
         "Health": {
             "type": "object",
-            "required": ["status", "api", "discovery", "discovery_heartbeat_age"],
+            "required": [
+                "status",
+                "api",
+                "discovery",
+                "discovery_heartbeat_age",
+                "discovery_error",
+                "auth",
+                "warnings",
+            ],
             "properties": {
-                "status": {"enum": ["ok", "degraded"]},
+                "status": {
+                    "enum": ["ok", "warning", "degraded"],
+                    "description": "degraded: the discovery layer is down or failing (503); "
+                    "warning: up, with warnings to look at",
+                },
                 "api": {"const": "up"},
-                "discovery": {"enum": ["up", "down"]},
+                "discovery": {
+                    "enum": ["up", "failing", "down"],
+                    "description": "failing: alive, but its work keeps failing or it cannot "
+                    "announce this robot's services (see discovery_error)",
+                },
                 "discovery_heartbeat_age": nullable_number,
+                "discovery_error": {"type": ["string", "null"]},
+                "auth": {
+                    "enum": ["open", "accept", "sign", "enforce", None],
+                    "description": "The keyring's mode; open: no fleet key",
+                },
+                "warnings": {
+                    "type": "array",
+                    "items": {"type": "string"},
+                    "description": "e.g. another daemon claims this robot's id",
+                },
+            },
+        },
+        "Keys": {
+            "type": "object",
+            "required": ["mode", "primary", "keyed", "ssdp_interop", "keys"],
+            "properties": {
+                "mode": {"enum": ["open", "accept", "sign", "enforce"]},
+                "primary": {"type": ["string", "null"], "description": "The key that signs"},
+                "keyed": {"type": "boolean"},
+                "ssdp_interop": {"type": "boolean"},
+                "keys": {
+                    "type": "array",
+                    "items": {
+                        "type": "object",
+                        "required": ["id", "primary", "installed", "received"],
+                        "properties": {
+                            "id": {"type": "string", "description": "8 hex characters"},
+                            "primary": {"type": "boolean"},
+                            "installed": nullable_number,
+                            "received": {
+                                "type": "integer",
+                                "description": "Datagrams verified with it since the "
+                                "discovery layer started",
+                            },
+                        },
+                    },
+                },
             },
         },
     }
+    key_id_param = [{"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}]
+    unix_only = (
+        "Only on the unix socket STATE_DIR/api.sock (403 over TCP). Never returns key material."
+    )
     paths: dict[str, Any] = {
         "/services": {
             "get": {
@@ -769,6 +1028,11 @@ def openapi_document() -> dict[str, Any]:
                     },
                     **_ERRORS_400,
                     "413": _ERROR,
+                    "507": {
+                        **_ERROR,
+                        "description": "The robot's services would need more than the 255 "
+                        "Update parts one announcement can carry",
+                    },
                 },
             },
         },
@@ -847,6 +1111,81 @@ def openapi_document() -> dict[str, Any]:
                 "responses": {"200": {"description": "OpenAPI 3.1", "content": _json_content({})}},
             }
         },
+        "/keys": {
+            "get": {
+                "summary": "The fleet keyring: key ids, the one that signs, the mode",
+                "description": unix_only,
+                "responses": {"200": _answer("The keyring", "Keys"), "403": _ERROR},
+            },
+            "post": {
+                "summary": "Install a key (accepted at once, used to sign after `use`)",
+                "description": unix_only + " The first key of a robot without any is put to "
+                "use in mode accept.",
+                "requestBody": {
+                    "required": True,
+                    "content": _json_content(
+                        {
+                            "type": "object",
+                            "required": ["key"],
+                            "additionalProperties": False,
+                            "properties": {
+                                "key": {"type": "string", "description": "base64, 32 bytes"}
+                            },
+                        }
+                    ),
+                },
+                "responses": {
+                    "201": _answer("Installed", "Keys"),
+                    "200": _answer("Installed already", "Keys"),
+                    "403": _ERROR,
+                    **_ERRORS_400,
+                },
+            },
+        },
+        "/keys/{id}/use": {
+            "post": {
+                "summary": "Sign with this key from now on",
+                "description": unix_only,
+                "parameters": key_id_param,
+                "responses": {"200": _answer("The keyring", "Keys"), "403": _ERROR, "404": _ERROR},
+            }
+        },
+        "/keys/{id}": {
+            "delete": {
+                "summary": "Stop accepting this key (never the one in use)",
+                "description": unix_only,
+                "parameters": key_id_param,
+                "responses": {
+                    "204": {"description": "Removed"},
+                    "403": _ERROR,
+                    "404": _ERROR,
+                    "409": _ERROR,
+                },
+            }
+        },
+        "/keys/mode": {
+            "put": {
+                "summary": "accept, sign or enforce (the steps of moving a fleet to a key)",
+                "description": unix_only,
+                "requestBody": {
+                    "required": True,
+                    "content": _json_content(
+                        {
+                            "type": "object",
+                            "required": ["mode"],
+                            "additionalProperties": False,
+                            "properties": {"mode": {"enum": ["accept", "sign", "enforce"]}},
+                        }
+                    ),
+                },
+                "responses": {
+                    "200": _answer("The keyring", "Keys"),
+                    "403": _ERROR,
+                    "409": _ERROR,
+                    **_ERRORS_400,
+                },
+            }
+        },
         "/metrics": {
             "get": {
                 "summary": "Prometheus metrics",
@@ -899,6 +1238,11 @@ def create_app(cfg: Config, store: Store) -> web.Application:
         ("GET", "/health", health),
         ("GET", "/openapi.json", openapi),
         ("GET", "/metrics", metrics),
+        ("GET", "/keys", keys_list),
+        ("POST", "/keys", keys_install),
+        ("POST", "/keys/{id}/use", keys_use),
+        ("DELETE", "/keys/{id}", keys_remove),
+        ("PUT", "/keys/mode", keys_mode),
     ]
     for method, path, handler in routes:
         app.router.add_route(method, path, handler)

@@ -13,7 +13,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from sdfr import netif, wifi
+from sdfr import keystore, netif, wifi
+from sdfr.auth import MODES
 from sdfr.client import (
     Client,
     neighbors_path,
@@ -22,7 +23,7 @@ from sdfr.client import (
     service_path,
     split_api,
 )
-from sdfr.config import DEFAULT_API, from_args, option_help
+from sdfr.config import DEFAULT_API, default_state_dir, from_args, option_help
 from sdfr.errors import ApiError, ConfigError, SdfrError
 from sdfr.model import AttrValue, attr_text
 
@@ -139,7 +140,40 @@ def build_parser() -> argparse.ArgumentParser:
         )
     c.add_argument("--dry-run", action="store_true", help="print what would be done, do nothing")
     c.add_argument("--show-key", action="store_true", help="print the WiFi key instead of ****")
+    _keys_parser(command)
     return p
+
+
+def _keys_parser(command: Callable[[str, str], argparse.ArgumentParser]) -> None:
+    k = command(
+        "keys",
+        "the fleet keyring: keys that sign and check every datagram (talks to sdfrd over its "
+        "unix socket STATE_DIR/api.sock, or --socket; `generate` only writes a file)",
+    )
+    k.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help=f"sdfrd's state directory, for its api.sock (default {default_state_dir()})",
+    )
+    ks = k.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
+    g = ks.add_parser("generate", help="write a new random fleet key to FILE (mode 0600)")
+    g.add_argument("file", type=Path, metavar="FILE")
+    g.add_argument("--force", action="store_true", help="replace FILE if it exists")
+    ks.add_parser("list", help="key ids, which one signs, the mode, datagrams received per key")
+    i = ks.add_parser("install", help="accept the key in FILE from now on (it signs after `use`)")
+    i.add_argument("file", type=Path, metavar="FILE")
+    u = ks.add_parser("use", help="sign with key ID from now on")
+    u.add_argument("id", metavar="ID")
+    r = ks.add_parser("remove", help="stop accepting key ID (not the one in use)")
+    r.add_argument("id", metavar="ID")
+    m = ks.add_parser(
+        "mode",
+        help="accept (send unsigned, accept both), sign (send signed, accept both), enforce "
+        "(send signed, accept only signed)",
+    )
+    m.add_argument("mode", choices=MODES)
 
 
 # sdfrd options that `sdfr wifi-config` takes too (wifi_secret is left out on purpose: a flag is
@@ -300,7 +334,33 @@ def _show_self(answer: dict[str, Any]) -> str:
 def _show_health(answer: dict[str, Any]) -> str:
     age = answer.get("discovery_heartbeat_age")
     beat = f", last heartbeat {age:.1f}s ago" if isinstance(age, int | float) else ""
-    return f"{answer['status']}: api {answer['api']}, discovery {answer['discovery']}{beat}"
+    auth = f", fleet key: {answer['auth']}" if answer.get("auth") else ""
+    lines = [
+        f"{answer['status']}: api {answer['api']}, discovery {answer['discovery']}{beat}{auth}"
+    ]
+    if answer.get("discovery_error"):
+        lines.append(f"error: {answer['discovery_error']}")
+    lines += [f"warning: {w}" for w in answer.get("warnings") or []]
+    return "\n".join(lines)
+
+
+def _show_keys(answer: dict[str, Any]) -> str:
+    mode = answer["mode"]
+    if not answer["keyed"]:
+        return "no fleet key: the fleet is open (sdfr keys install FILE)"
+    head = f"mode: {mode}, signing with {answer['primary'] if mode != 'accept' else 'no key'}"
+    rows = [
+        (
+            k["id"],
+            k["primary"],
+            time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(k["installed"]))
+            if isinstance(k.get("installed"), int | float)
+            else "-",
+            k["received"],
+        )
+        for k in answer["keys"]
+    ]
+    return head + "\n" + table(["KEY", "PRIMARY", "INSTALLED", "RECEIVED"], rows)
 
 
 # -- commands ----------------------------------------------------------------------------------
@@ -415,6 +475,66 @@ def _wifi_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _keys(args: argparse.Namespace) -> int:
+    """`sdfr keys ...`: on the daemon's unix socket (or, for generate, on a file)."""
+    as_json = getattr(args, "json", False)
+    action = args.keys_command
+    try:
+        if action == "generate":
+            kid = keystore.generate_key_file(args.file, force=args.force)
+            answer: Any = {"id": kid, "file": str(args.file)}
+            text = (
+                f"wrote key {kid} to {args.file} (mode 0600); copy it to each robot and set "
+                "key_file, or `sdfr keys install` it on running robots"
+            )
+        else:
+            socket_path = args.socket or str((args.state_dir or default_state_dir()) / "api.sock")
+            if not Path(socket_path).exists():
+                raise ApiError(
+                    0,
+                    f"no sdfrd answers on {socket_path}: is it running, and is --state-dir "
+                    "(or --socket) right?",
+                )
+            with Client(unix_socket=socket_path, timeout=args.timeout) as client:
+                answer, text = _keys_call(client, args)
+    except (ConfigError, ApiError) as exc:
+        print(f"sdfr: {exc}", file=sys.stderr)
+        return 1
+    if as_json:
+        if answer is not None:
+            print(json.dumps(answer, indent=2))
+    elif text:
+        print(text)
+    return 0
+
+
+def _keys_call(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    action = args.keys_command
+    if action == "list":
+        answer = client.keys()
+        return answer, _show_keys(answer)
+    if action == "install":
+        had_keys = client.keys()["keyed"]
+        answer = client.install_key(keystore.read_key_file(args.file))
+        text = f"key {answer['id']} installed\n" + _show_keys(answer)
+        if not had_keys:
+            text += (
+                "\nthis robot had no key: it signs nothing yet and accepts both. When every "
+                "robot has the key: `sdfr keys mode sign` on each, then `sdfr keys mode "
+                "enforce` on each"
+            )
+        return answer, text
+    if action == "use":
+        answer = client.use_key(args.id)
+        return answer, _show_keys(answer)
+    if action == "remove":
+        client.remove_key(args.id)
+        answer = client.keys()
+        return answer, f"key {args.id} removed\n" + _show_keys(answer)
+    answer = client.set_key_mode(args.mode)
+    return answer, _show_keys(answer)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -425,6 +545,8 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     if args.command == "wifi-config":
         return _wifi_config(args)
+    if args.command == "keys":
+        return _keys(args)
     try:
         with Client(args.api, unix_socket=args.socket, timeout=args.timeout) as client:
             answer, text = COMMANDS[args.command](client, args)
@@ -441,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # `sdfr history | head`: stop quietly, also at exit's flush
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    if args.command == "health" and answer.get("status") != "ok":
+    if args.command == "health" and answer.get("status") == "degraded":
         return 1
     return 0
 

@@ -11,6 +11,7 @@ STATE_DIR/api.sock); not safe to share between threads.
 
 from __future__ import annotations
 
+import base64
 import http.client
 import json
 import socket
@@ -261,3 +262,27 @@ class Client:
 
     def metrics(self) -> str:
         return str(self.request("GET", "/metrics"))
+
+    # -- the fleet keyring (over the unix socket only) ---------------------------------------
+
+    def keys(self) -> JsonObject:
+        """The keyring: mode, the key that signs, and per key its id (never the key)."""
+        ring: JsonObject = self.request("GET", "/keys")
+        return ring
+
+    def install_key(self, key: bytes) -> JsonObject:
+        """Accept `key` from now on (and, for a robot that had no key, sign with it in mode
+        accept); the answer has its `id`."""
+        ring: JsonObject = self.request("POST", "/keys", {"key": base64.b64encode(key).decode()})
+        return ring
+
+    def use_key(self, key_id: str) -> JsonObject:
+        ring: JsonObject = self.request("POST", f"/keys/{quote(key_id, safe='')}/use")
+        return ring
+
+    def remove_key(self, key_id: str) -> None:
+        self.request("DELETE", f"/keys/{quote(key_id, safe='')}")
+
+    def set_key_mode(self, mode: str) -> JsonObject:
+        ring: JsonObject = self.request("PUT", "/keys/mode", {"mode": mode})
+        return ring

@@ -375,6 +375,9 @@ async def test_health_follows_the_discovery_heartbeat(
             "api": "up",
             "discovery": "down",
             "discovery_heartbeat_age": None,
+            "discovery_error": None,
+            "auth": None,
+            "warnings": [],
         }
 
         discovery_store.write_status(status())
