@@ -25,7 +25,7 @@ from typing import Any
 from aiohttp import web
 
 from sdfr import __version__, auth, keystore, wire
-from sdfr.config import Config
+from sdfr.config import Config, location_max_len
 from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringError, StoredKeyring
 from sdfr.model import Service
@@ -227,8 +227,11 @@ def _neighbor_json(peer: PeerRecord, services: Iterable[Service]) -> dict[str, A
 class StoreView:
     """Reads of the store, cached until the data they come from changes."""
 
-    def __init__(self, store: Store) -> None:
+    def __init__(self, store: Store, cfg: Config | None = None) -> None:
         self.store = store
+        # What sizes this robot's Update headers: its id, the longest LOCATION it can have.
+        self._robot_id = None if cfg is None else cfg.robot_id
+        self._location_len = wire.MAX_LOCATION if cfg is None else location_max_len(cfg.describe)
         self._peers_key: int | None = None
         self._peers: list[PeerRecord] = []
         self._peer_bodies: dict[str, bytes] = {}
@@ -274,7 +277,11 @@ class StoreView:
         for s in services:
             if s.id not in sizes:
                 sizes[s.id] = wire.service_json_size(s)
-        return wire.parts_needed([*(sizes[s.id] for s in services), wire.service_json_size(extra)])
+        return wire.parts_needed(
+            [*(sizes[s.id] for s in services), wire.service_json_size(extra)],
+            robot_id=self._robot_id,
+            location_len=self._location_len,
+        )
 
     def services_body(self) -> bytes:
         version, services = self.local()
@@ -1221,7 +1228,7 @@ def openapi_document() -> dict[str, Any]:
 def create_app(cfg: Config, store: Store) -> web.Application:
     """The local REST API."""
     app = web.Application(middlewares=[_measure, _errors_as_json], client_max_size=MAX_BODY)
-    app[STATE] = ApiState(cfg=cfg, view=StoreView(store))
+    app[STATE] = ApiState(cfg=cfg, view=StoreView(store, cfg))
     openapi_body = _json_bytes(openapi_document())
 
     async def openapi(request: web.Request) -> web.Response:

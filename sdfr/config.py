@@ -164,6 +164,23 @@ def split_hostport(key: str, value: str) -> tuple[str, int]:
     return host, int(port_s)
 
 
+_WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+
+
+def location_url(describe: str, address: str) -> str:
+    """The LOCATION a robot announces: its description server (`describe`, HOST:PORT), on
+    `address` when the server listens on every address."""
+    host, port = split_hostport("describe", describe)
+    if host in _WILDCARD_HOSTS:
+        host = address or "0.0.0.0"
+    return f"http://{host}:{port}/description.json"
+
+
+def location_max_len(describe: str) -> int:
+    """The longest LOCATION `location_url` can give whatever the robot's IPv4 address."""
+    return len(location_url(describe, "255.255.255.255"))
+
+
 _HELP: dict[str, str] = {
     "iface": "network interface the fleet is on (default: the one with the default route, "
     "else the first non-loopback interface that is up)",

@@ -332,12 +332,13 @@ def _pack(sizes: Sequence[int], ids: Sequence[str], fixed: int) -> list[tuple[in
     return groups
 
 
-@cache
-def _worst_fixed() -> int:
-    """Update header bytes with the longest headers (64-character robot id, 200-byte location,
-    part 255/255, longest HOST and numbers), apart from the part number and content length."""
-    origin = Origin(MAX_FLEET, "r" * 64, MAX_BOOT_ID, 2**53 - 1, "f" * 16)
-    prefix = _update_prefix(origin, "l" * MAX_LOCATION, MAX_MAX_AGE, "h" * MAX_HOST)
+@lru_cache(maxsize=64)
+def _worst_fixed(robot_id: str = "r" * 64, location_len: int = MAX_LOCATION) -> int:
+    """Update header bytes with the longest headers (by default a 64-character robot id and a
+    200-byte location; part 255/255, the longest HOST and numbers), apart from the part
+    number and content length."""
+    origin = Origin(MAX_FLEET, robot_id, MAX_BOOT_ID, 2**53 - 1, "f" * 16)
+    prefix = _update_prefix(origin, "l" * location_len, MAX_MAX_AGE, "h" * MAX_HOST)
     return len(prefix) + len(_update_suffix("", str(MAX_PARTS), ""))
 
 
@@ -346,11 +347,15 @@ def service_json_size(service: Service) -> int:
     return len(_service_json(service))
 
 
-def parts_needed(sizes: Sequence[int]) -> int:
-    """Update parts a set of services whose JSON has these sizes needs, with the longest
-    headers any robot can have: a set is announceable anywhere iff this is <= MAX_PARTS.
+def parts_needed(
+    sizes: Sequence[int], *, robot_id: str | None = None, location_len: int = MAX_LOCATION
+) -> int:
+    """Update parts a set of services whose JSON has these sizes needs with the longest
+    headers robot `robot_id` (any robot, by default) can send with a location of at most
+    `location_len` bytes: its set can be announced iff this is <= MAX_PARTS.
     ValueError if one of them cannot fit a datagram alone."""
-    return len(_pack(sizes, [f"#{i}" for i in range(len(sizes))], _worst_fixed()))
+    fixed = _worst_fixed("r" * 64 if robot_id is None else robot_id, location_len)
+    return len(_pack(sizes, [f"#{i}" for i in range(len(sizes))], fixed))
 
 
 @cache

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from sdfr import keystore, netif
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
-from sdfr.config import Config, from_args, split_hostport
+from sdfr.config import Config, from_args, location_url
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.errors import SdfrError
 from sdfr.protocol import MESSAGE_TYPES, Core, CoreConfig, PeerView
@@ -121,10 +121,7 @@ class DiscoveryLayer:
     # -- setup -----------------------------------------------------------------------------
 
     def _location(self) -> str:
-        host, port = split_hostport("describe", self.cfg.describe)
-        if host in ("0.0.0.0", "::", ""):
-            host = self.address or "0.0.0.0"
-        return f"http://{host}:{port}/description.json"
+        return location_url(self.cfg.describe, self.address)
 
     def _restore_views(self) -> list[PeerView]:
         off = self.clock_offset
