@@ -20,7 +20,7 @@ from scapy.fields import Field
 from scapy.layers.inet import UDP
 from scapy.packet import Packet, bind_layers
 
-from sdfr import wire
+from sdfr import auth, wire
 
 __all__ = ["MSG_TYPES", "PORT", "SDfR", "describe"]
 
@@ -41,6 +41,10 @@ def describe(data: bytes) -> dict[str, Any]:
     out["method"] = _METHODS.get(line.split(" ", 1)[0], "")
     msg = wire.decode(data)
     out["msg_type"] = type(msg).__name__
+    sealed = auth.seal_of(data)
+    if sealed is not None:  # which key signed it, and its counter (not checked: no key here)
+        out["key"] = sealed.kid
+        out["counter"] = sealed.counter
     if isinstance(msg, wire.Reject):
         out["reason"] = msg.reason
         out["detail"] = msg.detail
@@ -118,6 +122,8 @@ _VIEW_FIELDS = (
     "st",
     "seq",
     "ping",
+    "key",
+    "counter",
     "reason",
     "detail",
 )
@@ -130,7 +136,8 @@ class SDfR(Packet):
     msg_type: one of MSG_TYPES; robot, fleet, boot, version: the sender (None for a plain
     SSDP search); part (0-based), parts, services: Update only; st, seq: Discovery and
     Response (seq marks a unicast ping); ping: a ping riding on a Response (its sequence
-    number); reason, detail: Reject only.
+    number); key, counter: the seal of a keyed fleet's datagram (the key id and the sender's
+    counter, as written: a capture holds no key to check them); reason, detail: Reject only.
     """
 
     name = "SDfR"

@@ -43,6 +43,7 @@ __all__ = [
     "check",
     "key_id",
     "seal",
+    "seal_of",
 ]
 
 #: Length of a fleet key in bytes (256 bits).
@@ -160,20 +161,15 @@ def seal(data: bytes, key: bytes, counter: int) -> bytes:
     return out
 
 
-def check(data: bytes, keyring: Keyring) -> Sealed | Reject | None:
-    """Check the seal of a received datagram before anything else reads it.
-
-    Returns the seal when it is valid, None for an unsigned datagram the keyring lets through,
-    and a Reject otherwise.  Only the seal line is looked at; nothing else is parsed.
-    """
+def _seal_line(data: bytes) -> tuple[int, str, int, bytes] | Reject | None:
+    """The seal of a datagram as written (not checked): where its line ends, key id, counter,
+    mac; None when there is none, a Reject when it is malformed."""
     end = data.find(b"\r\n\r\n")
     start = data.rfind(b"\n", 0, end) + 1 if end > 0 else 0
     if end < 0 or not data.startswith(AUTH_HEADER, start):
         if AUTH_HEADER[:-1] in data[: end if end >= 0 else len(data)]:
             return Reject("bad-seal", "X-SDFR-AUTH is not the last header line")
-        if keyring.accepts_unsigned:
-            return None
-        return Reject("unsigned", "the fleet is keyed and the datagram carries no seal")
+        return None
     fields = data[start + len(AUTH_HEADER) : end].split(b" ")
     if len(fields) != 3:
         return Reject("bad-seal", "X-SDFR-AUTH is not '<key id> <counter> <mac>'")
@@ -190,13 +186,37 @@ def check(data: bytes, keyring: Keyring) -> Sealed | Reject | None:
     counter = int(ctr)
     if not 1 <= counter <= MAX_COUNTER:
         return Reject("bad-seal", f"counter {counter} out of range")
-    key = keyring.keys.get(kid.decode())
+    return end, kid.decode(), counter, mac
+
+
+def seal_of(data: bytes) -> Sealed | None:
+    """The key id and counter a datagram's seal names, *unchecked* (for captures: whoever
+    reads a pcap needs no key to see which key a robot used)."""
+    line = _seal_line(data)
+    return Sealed(line[1], line[2]) if isinstance(line, tuple) else None
+
+
+def check(data: bytes, keyring: Keyring) -> Sealed | Reject | None:
+    """Check the seal of a received datagram before anything else reads it.
+
+    Returns the seal when it is valid, None for an unsigned datagram the keyring lets through,
+    and a Reject otherwise.  Only the seal line is looked at; nothing else is parsed.
+    """
+    line = _seal_line(data)
+    if line is None:
+        if keyring.accepts_unsigned:
+            return None
+        return Reject("unsigned", "the fleet is keyed and the datagram carries no seal")
+    if isinstance(line, Reject):
+        return line
+    end, kid, counter, mac = line
+    key = keyring.keys.get(kid)
     if key is None:
-        return Reject("unknown-key", f"sealed with key {kid.decode()}, not in the keyring")
+        return Reject("unknown-key", f"sealed with key {kid}, not in the keyring")
     signed = data[: end - MAC_CHARS] + data[end + 2 :]
     if not hmac.compare_digest(_mac(key, signed), mac):
-        return Reject("bad-mac", f"seal of key {kid.decode()} does not match")
-    return Sealed(kid.decode(), counter)
+        return Reject("bad-mac", f"seal of key {kid} does not match")
+    return Sealed(kid, counter)
 
 
 WINDOW = 64

@@ -31,7 +31,7 @@ from netlab.capture import (
 )
 from netlab.report import AgreementSample, ConnectivitySample, write_report
 from netlab.sdfr_layer import SDfR, describe
-from sdfr import wire
+from sdfr import auth, wire
 from sdfr.model import Service
 
 GROUP = wire.DEFAULT_GROUP
@@ -211,6 +211,19 @@ def test_layer_dissects_every_message_type() -> None:
     assert (bye.msg_type, bye.robot) == ("Byebye", "r2")
     plain = SDfR(wire.encode(wire.Discovery(None, "ssdp:all", 1)))
     assert (plain.msg_type, plain.robot) == ("Discovery", None)
+    assert (alive[SDfR].key, alive[SDfR].counter) == (None, None)
+
+
+def test_layer_shows_the_seal_of_a_keyed_fleet() -> None:
+    key = bytes(range(32))
+    sealed = auth.seal(wire.encode(wire.Alive(origin(1, 5), location(1), 30)), key, 77)
+    layer = SDfR(sealed)
+    assert (layer.msg_type, layer.robot, layer.key, layer.counter) == (
+        "Alive",
+        "r1",
+        auth.key_id(key),
+        77,
+    )
 
 
 def test_layer_binds_to_port_1900_both_ways() -> None:
