@@ -163,7 +163,7 @@ def receive_cpu(n: int, repeats: int) -> dict[str, float]:
             core.datagrams_to_send()
             t0 = time.perf_counter()
             for i, data in enumerate(datagrams[1:], 1):
-                core.receive(data, src, i * 1e-3)
+                core.receive(data, src, i * 5e-3)  # 200/s: under the per-source limit
                 core.datagrams_to_send()
             samples.append((time.perf_counter() - t0) / (n - 1) * 1e6)
             assert not core.counters.rejects, core.counters.rejects

@@ -26,6 +26,7 @@ import hashlib
 import hmac
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Literal, TypeAlias, get_args
 
 from sdfr.wire import MAX_DATAGRAM, SEAL_RESERVE, Reject
@@ -75,6 +76,7 @@ MODES: tuple[Mode, ...] = get_args(Mode)
 REJECT_REASONS = ("unsigned", "unknown-key", "bad-mac", "bad-seal")
 
 
+@lru_cache(maxsize=64)
 def key_id(key: bytes) -> str:
     """The public name of a key: 8 hex characters of a hash of it (not a secret)."""
     return hashlib.sha256(_KID_LABEL + key).hexdigest()[:KID_CHARS]
