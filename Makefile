@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-netem check fmt bench bench-auth bench-traffic netlab clean distclean
+.PHONY: venv test test-netem check fmt bench bench-auth bench-flood bench-traffic netlab clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -39,6 +39,7 @@ bench: $(STAMP)
 	mkdir -p runs
 	$(BIN)/python -m bench.api_latency | tee runs/bench-api.json
 	$(MAKE) --no-print-directory bench-auth
+	$(MAKE) --no-print-directory bench-flood
 	$(MAKE) --no-print-directory bench-traffic
 
 # What authenticated datagrams cost: bytes and CPU per datagram, signed vs unsigned, and a
@@ -46,6 +47,12 @@ bench: $(STAMP)
 bench-auth: $(STAMP)
 	mkdir -p runs
 	$(BIN)/python -m bench.auth > /dev/null
+
+# A flood of 10,000 fake robots at 5,000 datagrams/s for 60 s against a real daemon of an
+# open fleet: its CPU, memory, /neighbors latency and pings, idle vs flooded (~2 min; root).
+bench-flood: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.flood
 
 # SDfR's bytes per robot over 5 minutes at the 10 s beacon, fleets of 2, 4 and 6 at once
 # (~6 min); JSON on stdout and in runs/bench-traffic.json, a table on stderr.

@@ -771,6 +771,12 @@ def metrics_text(state: ApiState) -> str:
     )
     out.append(f"sdfr_challenges_total {_number(counters.get('challenges', 0))}")
     family(
+        "sdfr_challenges_limited_total",
+        "counter",
+        "Challenges not sent because too many were due at once (a flood of claims).",
+    )
+    out.append(f"sdfr_challenges_limited_total {_number(counters.get('challenges_limited', 0))}")
+    family(
         "sdfr_robot_id_conflicts_total",
         "counter",
         "Datagrams from another sender claiming this robot's id.",

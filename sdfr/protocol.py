@@ -232,6 +232,8 @@ class Counters:
     #: Datagrams whose seal checked out, by key id.
     verified: Counter[str] = field(default_factory=Counter)
     challenges: int = 0
+    #: Challenges not sent for want of budget (CHALLENGE_RATE): a sign of a flood.
+    challenges_limited: int = 0
 
 
 _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: "alive"}
@@ -667,7 +669,7 @@ class Core:
         if now < peer.challenged_at + self.config.ping_timeout:
             return True  # one is in flight (or was just answered)
         if not self._challenge_budget.take(now):
-            self.counters.rejects["challenge-limited"] += 1
+            self.counters.challenges_limited += 1
             if not peer.proven:  # try again as soon as the budget allows
                 peer.next_ping = min(peer.next_ping, now + 1.0 / CHALLENGE_RATE)
             return False

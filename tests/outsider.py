@@ -9,8 +9,9 @@ as the victim of a reflection.
 - ``send --to IP[:PORT] [--spoof IP[:PORT]] [--repeat N] [--interval S] HEX...``
 - ``capture --match TEXT [--sender IP] [--count N] [--timeout S]``: prints one hex line per
   datagram received on the SDfR group that contains TEXT (from IP).
-- ``flood --to IP --count N [--fleet F] [--net A.B]``: N Alives of N fake robots, each from
-  its own forged address in A.B.100.1 - A.B.249.250 (the lab's /16, away from its robots).
+- ``flood --to IP --count N [--fleet F] [--net A.B] [--rate R --seconds S]``: N Alives of N
+  fake robots, each from its own forged address in A.B.100.1 - A.B.249.250 (the lab's /16,
+  away from its robots); with --rate, R a second for S seconds, cycling through them.
 - ``listen --port P --timeout S``: prints JSON ``{"datagrams": n, "bytes": b}`` received.
 """
 
@@ -108,11 +109,27 @@ def cmd_flood(args: argparse.Namespace) -> int:
     sender = Sender()
     dst = _addr(args.to)
     a, b = (int(x) for x in args.net.split("."))
+    fakes = []
     for i in range(args.count):
         origin = wire.Origin(args.fleet, f"fake{i}", 1, 1, "0" * 16)
         data = wire.encode(wire.Alive(origin, "http://10.0.0.1/", 30))
-        src = (f"{a}.{b}.{100 + i // 250 % 150}.{i % 250 + 1}", PORT)
-        sender.send(data, dst, src)
+        fakes.append((data, (f"{a}.{b}.{100 + i // 250 % 150}.{i % 250 + 1}", PORT)))
+    if args.rate is None:  # as fast as it goes, each fake once
+        for data, src in fakes:
+            sender.send(data, dst, src)
+        print(json.dumps({"sent": len(fakes)}), flush=True)
+        return 0
+    # Paced: `rate` a second for `seconds`, cycling through the fakes, in 10 ms batches.
+    start = time.monotonic()
+    sent = 0
+    while (now := time.monotonic() - start) < args.seconds:
+        due = int(now * args.rate) + 1
+        while sent < due:
+            data, src = fakes[sent % len(fakes)]
+            sender.send(data, dst, src)
+            sent += 1
+        time.sleep(0.01)
+    print(json.dumps({"sent": sent, "seconds": round(time.monotonic() - start, 3)}), flush=True)
     return 0
 
 
@@ -157,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--count", type=int, required=True)
     f.add_argument("--fleet", type=int, default=1)
     f.add_argument("--net", default="10.77")
+    f.add_argument("--rate", type=float, help="datagrams a second (default: as fast as it goes)")
+    f.add_argument("--seconds", type=float, default=10.0, help="how long, with --rate")
     f.set_defaults(fn=cmd_flood)
     listen = sub.add_parser("listen")
     listen.add_argument("--port", type=int, default=PORT)

@@ -466,6 +466,7 @@ class DiscoveryLayer:
                     "bytes_out": c.bytes_out,
                     "rejects": dict(c.rejects),
                     "challenges": c.challenges,
+                    "challenges_limited": c.challenges_limited,
                 },
                 "auth": self._auth_status(),
                 "robot_id_conflict": self._conflict_status(),
