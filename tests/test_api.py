@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import functools
 import json
@@ -17,9 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from aiohttp import web
+from aiohttp import ClientSession, UnixConnector, web
 from aiohttp.test_utils import TestClient, TestServer
 
+from sdfr import auth, keystore, wire
 from sdfr.api import (
     HEARTBEAT_STALE,
     create_app,
@@ -28,7 +30,8 @@ from sdfr.api import (
     openapi_document,
     pid_alive,
 )
-from sdfr.config import Config
+from sdfr.auth import Keyring
+from sdfr.config import Config, location_max_len
 from sdfr.model import Service
 from sdfr.store import PeerRecord, Store
 
@@ -564,3 +567,142 @@ async def test_publish_and_unpublish_wake_discovery(cfg: Config, store: Store) -
             await c.post("/services", json={"name": ""})  # rejected: nothing to announce
             with pytest.raises(BlockingIOError):
                 listener.recv(64)
+
+
+# -- what the fleet could never see ------------------------------------------------------------
+
+
+@aio
+async def test_a_publish_beyond_255_update_parts_is_refused(cfg: Config, store: Store) -> None:
+    """Publish services of one size until refused: exactly as many as one announcement can
+    carry are accepted, and the set really encodes in 255 parts with this robot's headers."""
+    name = "n" * 100
+    one = {"name": name, "type": "sensor.kind", "url": "http://10.0.0.1/" + "u" * 100}
+    size = wire.service_json_size(Service(id="0" * 12, **one))
+    location_len = location_max_len(cfg.describe)
+    expect = 1
+    while wire.parts_needed([size] * (expect + 1), robot_id="r1", location_len=location_len) <= 255:
+        expect += 1
+    async with serve(create_app(cfg, store)) as c:
+        for _ in range(expect):
+            assert (await c.post("/services", json=one)).status == 201
+        r = await c.post("/services", json=one)
+        assert r.status == 507
+        body = await r.json()
+        assert body["field"] == "services" and "255" in body["error"] and "256" in body["error"]
+    _, services = store.local_state()
+    assert len(services) == expect
+    origin = wire.Origin(255, "r1", 2**31 - 1, 2**53 - 1, "f" * 16)
+    location = "http://" + "9" * (location_len - len("http://:1/description.json")) + ":1/"
+    location = location.ljust(location_len, "x")
+    parts = wire.encode_update_parts(origin, location, 86400, services)
+    assert len(parts) <= 255
+
+
+# -- /health: failing and warnings --------------------------------------------------------------
+
+
+@aio
+async def test_health_says_why_discovery_fails_and_what_to_look_at(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        discovery_store.write_status(status(errors={"recent": 1, "last": "timer failed: X"}))
+        r = await c.get("/health")
+        assert r.status == 200 and (await r.json())["discovery"] == "up"  # one failure: up
+        discovery_store.write_status(status(errors={"recent": 3, "last": "timer failed: X"}))
+        r = await c.get("/health")
+        answer = await r.json()
+        assert r.status == 503 and answer["discovery"] == "failing"
+        assert answer["status"] == "degraded" and answer["discovery_error"] == "timer failed: X"
+        too_big = "cannot announce the service set: 300 services need 256 update parts"
+        discovery_store.write_status(status(errors={"recent": 0, "persistent": too_big}))
+        r = await c.get("/health")
+        assert r.status == 503 and (await r.json())["discovery_error"] == too_big
+
+        conflict = {"address": "10.7.0.9", "boot_id": 77, "last_seen": time.time(), "count": 4}
+        discovery_store.write_status(
+            status(robot_id_conflict=conflict, auth={"mode": "sign", "received": {"ab": 3}})
+        )
+        r = await c.get("/health")
+        answer = await r.json()
+        assert r.status == 200 and answer["status"] == "warning" and answer["auth"] == "sign"
+        assert any("10.7.0.9" in w and "boot 77" in w for w in answer["warnings"])
+        assert any("mode sign" in w and "enforce" in w for w in answer["warnings"])
+        text = await (await c.get("/metrics")).text()
+        assert "sdfr_robot_id_conflicts_total 4" in text
+        assert 'sdfr_auth_mode{mode="sign"} 1' in text
+        assert 'sdfr_auth_verified_total{key="ab"} 3' in text
+
+
+# -- the keyring: unix socket only --------------------------------------------------------------
+
+
+@contextlib.asynccontextmanager
+async def over_unix_socket(app: web.Application, path: Path) -> AsyncIterator[ClientSession]:
+    runner = web.AppRunner(app)
+    await runner.setup()
+    await web.UnixSite(runner, str(path)).start()
+    try:
+        async with ClientSession(connector=UnixConnector(str(path))) as session:
+            yield session
+    finally:
+        await runner.cleanup()
+
+
+@aio
+async def test_key_management_is_refused_over_tcp(cfg: Config, store: Store) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        for method, path, body in (
+            ("GET", "/keys", None),
+            ("POST", "/keys", {"key": base64.b64encode(bytes(32)).decode()}),
+            ("PUT", "/keys/mode", {"mode": "accept"}),
+        ):
+            r = await c.request(method, path, json=body)
+            assert r.status == 403
+            assert "unix socket" in (await r.json())["error"]
+    assert not (cfg.state_dir / "keyring.json").exists()
+
+
+@aio
+async def test_the_keyring_over_the_unix_socket(
+    cfg: Config, store: Store, discovery_store: Store, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    k1, k2 = bytes(range(32)), bytes(range(5, 37))
+    id1, id2 = auth.key_id(k1), auth.key_id(k2)
+    b64 = {k: base64.b64encode(k).decode() for k in (k1, k2)}
+    sock = tmp_path_factory.mktemp("s") / "api.sock"
+    bodies: list[str] = []
+
+    async def call(s: ClientSession, method: str, path: str, body: Any = None) -> Any:
+        r = await s.request(method, f"http://localhost{path}", json=body)
+        text = await r.text()
+        bodies.append(text)
+        return r.status, (json.loads(text) if text else None)
+
+    discovery_store.write_status(status(auth={"mode": "accept", "received": {id1: 12}}))
+    async with over_unix_socket(create_app(cfg, store), sock) as s:
+        assert await call(s, "GET", "/keys") == (
+            200,
+            {"mode": "open", "primary": None, "keyed": False, "ssdp_interop": True, "keys": []},
+        )
+        code, ring = await call(s, "POST", "/keys", {"key": b64[k1]})
+        assert code == 201 and ring["id"] == id1 and ring["mode"] == "accept"
+        assert ring["keys"][0]["received"] == 12 and ring["ssdp_interop"] is False
+        assert (await call(s, "POST", "/keys", {"key": b64[k1]}))[0] == 200
+        assert (await call(s, "POST", "/keys", {"key": b64[k2]}))[0] == 201
+        code, ring = await call(s, "POST", f"/keys/{id2}/use")
+        assert code == 200 and ring["primary"] == id2
+        code, err = await call(s, "DELETE", f"/keys/{id2}")
+        assert code == 409 and err["field"] == "id"
+        assert (await call(s, "DELETE", f"/keys/{id1}"))[0] == 204
+        assert (await call(s, "DELETE", f"/keys/{id1}"))[0] == 404
+        code, ring = await call(s, "PUT", "/keys/mode", {"mode": "enforce"})
+        assert code == 200 and ring["mode"] == "enforce"
+        assert (await call(s, "PUT", "/keys/mode", {"mode": "lax"}))[0] == 422
+        code, err = await call(s, "POST", "/keys", {"key": "not base64"})
+        assert code == 422 and err["field"] == "key"
+        assert (await call(s, "POST", "/keys", {"key": b64[k1], "more": 1}))[0] == 422
+    stored = keystore.load(cfg.state_dir)
+    assert stored.keyring == Keyring.of([k2], mode="enforce")
+    assert not any(b64[k1] in b or b64[k2] in b for b in bodies)  # never key material

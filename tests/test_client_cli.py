@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from sdfr import auth, keystore
+from sdfr.auth import Keyring
 from sdfr.cli import main as sdfr
 from sdfr.cli import typed_value
 from sdfr.client import Client
@@ -143,10 +145,10 @@ def save_fleet(state_dir: Path) -> None:
         store.close()
 
 
-def write_healthy_status(state_dir: Path) -> None:
+def write_healthy_status(state_dir: Path, **extra: object) -> None:
     store = Store(state_dir)
     try:
-        store.write_status({"pid": os.getpid(), "robot_id": "r1", "address": "10.1.9.9"})
+        store.write_status({"pid": os.getpid(), "robot_id": "r1", "address": "10.1.9.9", **extra})
     finally:
         store.close()
 
@@ -340,6 +342,12 @@ def test_cli_health_exit_status(layer: ApiLayer, capsys: pytest.CaptureFixture[s
     write_healthy_status(layer.state_dir)
     assert sdfr(["--api", layer.api, "health", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["status"] == "ok"
+    # Up, with something to look at: a warning, not a failure.
+    conflict = {"address": "10.1.9.7", "boot_id": 3, "last_seen": time.time(), "count": 1}
+    write_healthy_status(layer.state_dir, robot_id_conflict=conflict)
+    assert sdfr(["--api", layer.api, "health"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("warning: api up, discovery up") and "10.1.9.7" in out
 
 
 def test_cli_errors_are_one_line(layer: ApiLayer, capsys: pytest.CaptureFixture[str]) -> None:
@@ -386,3 +394,44 @@ def test_cli_errors_are_one_line(layer: ApiLayer, capsys: pytest.CaptureFixture[
 def test_cli_attribute_values_are_typed_when_they_read_back(text: str, value: object) -> None:
     got = typed_value(text)
     assert got == value and type(got) is type(value)
+
+
+def test_cli_keys_generate_and_manage_a_running_daemon(
+    layer: ApiLayer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    k1, k2 = tmp_path / "k1.key", tmp_path / "k2.key"
+    assert sdfr(["keys", "generate", str(k1)]) == 0
+    assert "wrote key" in capsys.readouterr().out
+    assert k1.stat().st_mode & 0o777 == 0o600
+    assert sdfr(["keys", "generate", str(k1)]) == 1
+    assert "exists already" in capsys.readouterr().err
+    assert sdfr(["--json", "keys", "generate", str(k2)]) == 0
+    id2 = json.loads(capsys.readouterr().out)["id"]
+    id1 = auth.key_id(keystore.read_key_file(k1))
+    where = ["keys", "--state-dir", str(layer.state_dir)]
+
+    assert sdfr([*where, "list"]) == 0
+    assert "the fleet is open" in capsys.readouterr().out
+    assert sdfr([*where, "install", str(k1)]) == 0
+    out = capsys.readouterr().out
+    assert f"key {id1} installed" in out and "mode: accept" in out and "mode enforce" in out
+    assert sdfr([*where, "install", str(k2)]) == 0
+    assert "this robot had no key" not in capsys.readouterr().out
+    assert sdfr([*where, "use", id2]) == 0
+    assert sdfr([*where, "remove", id1]) == 0
+    assert sdfr([*where, "mode", "enforce"]) == 0
+    capsys.readouterr()
+    assert sdfr(["--json", *where, "list"]) == 0
+    ring = json.loads(capsys.readouterr().out)
+    assert ring["mode"] == "enforce" and ring["primary"] == id2
+    assert [k["id"] for k in ring["keys"]] == [id2]
+    # --socket works as well as --state-dir; a mistake is one line, exit status 1.
+    assert sdfr(["--socket", str(layer.socket), "keys", "remove", id2]) == 1
+    assert "signs with" in capsys.readouterr().err
+    assert sdfr(["keys", "--state-dir", str(tmp_path / "none"), "list"]) == 1
+    err = capsys.readouterr().err
+    assert "no sdfrd answers on" in err and "api.sock" in err and len(err.splitlines()) == 1
+    # And the keyring is on disk for the discovery layer and the next start.
+    assert keystore.load_keyring(layer.state_dir) == Keyring.of(
+        [keystore.read_key_file(k2)], mode="enforce"
+    )

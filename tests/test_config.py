@@ -94,3 +94,17 @@ def test_sdfrd_reports_bad_flags_in_one_line(
 def test_the_shipped_robot_config_parses() -> None:
     cfg = from_args(["--config", str(Path(__file__).parent.parent / "examples" / "robot.toml")])
     assert (cfg.addressing, cfg.fleet, cfg.iface) == ("auto", 3, "wlan0")
+
+
+def test_fleet_key_options(tmp_path: Path) -> None:
+    conf = tmp_path / "sdfrd.toml"
+    conf.write_text('key_file = "/etc/sdfr/fleet.key"\nauth = "sign"\nssdp_interop = "on"\n')
+    cfg = from_args(["--config", str(conf)])
+    assert (cfg.key_file, cfg.auth, cfg.ssdp_interop) == (Path("/etc/sdfr/fleet.key"), "sign", "on")
+    assert from_args(to_args(cfg)) == cfg  # the layers get them too
+    defaults = from_args([])
+    assert (defaults.key_file, defaults.auth, defaults.ssdp_interop) == (None, None, "auto")
+    with pytest.raises(ConfigError, match="auth: must be accept, sign or enforce"):
+        from_args(["--auth", "lax"])
+    with pytest.raises(ConfigError, match="ssdp_interop: must be auto, on or off"):
+        from_args(["--ssdp-interop", "yes"])

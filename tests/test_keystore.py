@@ -1,0 +1,192 @@
+"""Key files and the keyring kept in the state directory (sdfr.keystore), and the state dir lock."""
+
+from __future__ import annotations
+
+import base64
+import logging
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from sdfr import auth, keystore
+from sdfr.auth import OPEN, Keyring
+from sdfr.daemon.supervisor import lock_state_dir
+from sdfr.errors import ConfigError, SdfrError
+from sdfr.keystore import KeyringError, StoredKeyring
+
+K1 = bytes(range(32))
+K2 = bytes(range(1, 33))
+
+
+def write(path: Path, text: str, mode: int = 0o600) -> Path:
+    path.write_text(text)
+    path.chmod(mode)
+    return path
+
+
+def mode_of(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+# -- key files -------------------------------------------------------------------------------
+
+
+def test_a_key_file_holds_one_base64_line_among_comments(tmp_path: Path) -> None:
+    std = base64.b64encode(K1).decode()
+    url = base64.urlsafe_b64encode(bytes([251] * 32)).decode().rstrip("=")
+    assert keystore.read_key_file(write(tmp_path / "a", f"# fleet 3\n\n  {std}  \n")) == K1
+    assert keystore.read_key_file(write(tmp_path / "b", url)) == bytes([251] * 32)
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("# only a comment\n", "holds no key"),
+        (f"{base64.b64encode(K1).decode()}\n{base64.b64encode(K2).decode()}\n", "2 key lines"),
+        ("not-base64-at-all!!\n", "not base64"),
+        (base64.b64encode(b"short").decode(), "5 bytes, not 32"),
+    ],
+)
+def test_a_bad_key_file_is_named_with_what_is_wrong(tmp_path: Path, text: str, says: str) -> None:
+    path = write(tmp_path / "fleet.key", text)
+    with pytest.raises(ConfigError, match=says) as err:
+        keystore.read_key_file(path)
+    assert str(path) in str(err.value)
+
+
+def test_a_missing_or_unreadable_key_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        keystore.read_key_file(tmp_path / "nope")
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(ConfigError, match="cannot read"):
+        keystore.read_key_file(tmp_path / "dir")
+
+
+def test_a_key_file_others_can_read_is_used_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = write(tmp_path / "k", base64.b64encode(K1).decode(), mode=0o644)
+    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+        assert keystore.read_key_file(path) == K1
+    assert "chmod 600" in caplog.text and str(path) in caplog.text
+
+
+def test_generate_writes_a_private_key_and_never_overwrites(tmp_path: Path) -> None:
+    path = tmp_path / "keys" / "fleet.key"
+    kid = keystore.generate_key_file(path)
+    assert mode_of(path) == 0o600
+    key = keystore.read_key_file(path)
+    assert auth.key_id(key) == kid and kid in path.read_text().splitlines()[0]
+    with pytest.raises(ConfigError, match="exists already"):
+        keystore.generate_key_file(path)
+    assert keystore.read_key_file(path) == key
+    other = keystore.generate_key_file(path, force=True)
+    assert other != kid and mode_of(path) == 0o600
+    assert auth.key_id(keystore.read_key_file(path)) == other
+
+
+# -- the keyring -----------------------------------------------------------------------------
+
+
+def test_the_keyring_round_trips_privately(tmp_path: Path) -> None:
+    assert keystore.load(tmp_path) == StoredKeyring()
+    stored = StoredKeyring(Keyring.of([K1, K2], primary=K2, mode="sign"), {auth.key_id(K1): 100.0})
+    keystore.save(tmp_path, stored)
+    assert mode_of(keystore.keyring_path(tmp_path)) == 0o600
+    assert keystore.load(tmp_path) == stored
+    assert keystore.load_keyring(tmp_path) == stored.keyring
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "{not json",
+        '{"version": 2, "mode": "enforce", "keys": []}',
+        '{"version": 1, "mode": "lax", "keys": []}',
+        '{"version": 1, "mode": "enforce", "primary": "00000000", "keys": '
+        f'[{{"id": "00000000", "key": "{base64.b64encode(K1).decode()}"}}]}}',
+    ],
+)
+def test_a_damaged_keyring_is_named(tmp_path: Path, text: str) -> None:
+    write(keystore.keyring_path(tmp_path), text)
+    with pytest.raises(SdfrError, match=r"keyring\.json is damaged"):
+        keystore.load(tmp_path)
+
+
+def key_file(tmp_path: Path, key: bytes, name: str = "fleet.key") -> Path:
+    return write(tmp_path / name, base64.b64encode(key).decode() + "\n")
+
+
+def test_seed_without_any_key_is_an_open_fleet(tmp_path: Path) -> None:
+    assert keystore.seed(tmp_path, None, None) == OPEN
+    assert not keystore.keyring_path(tmp_path).exists()
+
+
+def test_seed_takes_the_key_file_into_an_empty_keyring(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    ring = keystore.seed(state, key_file(tmp_path, K1), None)
+    assert ring == Keyring.of([K1], mode="enforce")
+    assert keystore.load_keyring(state) == ring
+    other = tmp_path / "other"
+    assert keystore.seed(other, key_file(tmp_path, K1), "accept").mode == "accept"
+
+
+def test_seed_keeps_a_keyring_a_rotation_changed(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    state = tmp_path / "state"
+    keystore.save(state, StoredKeyring(Keyring.of([K2], mode="enforce")))
+    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+        ring = keystore.seed(state, key_file(tmp_path, K1), None)
+    assert ring == Keyring.of([K2])  # the stored keyring wins over a stale key_file
+    assert "update key_file" in caplog.text
+    # An explicit mode replaces the stored one, and is stored.
+    assert keystore.seed(state, None, "sign").mode == "sign"
+    assert keystore.load_keyring(state).mode == "sign"
+    with pytest.raises(ConfigError, match="auth"):
+        keystore.seed(state, None, "lax")
+
+
+def test_install_use_remove_and_mode(tmp_path: Path) -> None:
+    k1, k2 = auth.key_id(K1), auth.key_id(K2)
+    stored, added = keystore.install(StoredKeyring(), K1, 10.0)
+    # A robot of an open fleet that gets its first key keeps talking to its unkeyed peers.
+    assert added and stored.keyring == Keyring.of([K1], mode="accept")
+    assert stored.installed == {k1: 10.0}
+    again, added = keystore.install(stored, K1, 20.0)
+    assert not added and again == stored
+    stored, added = keystore.install(keystore.set_mode(stored, "enforce"), K2, 30.0)
+    assert added and stored.keyring.primary == k1 and stored.keyring.mode == "enforce"
+    stored = keystore.use(stored, k2)
+    assert stored.keyring.primary == k2
+    with pytest.raises(KeyringError, match="is the one this robot signs with") as err:
+        keystore.remove(stored, k2)
+    assert err.value.status == 409
+    stored = keystore.remove(stored, k1)
+    assert set(stored.keyring.keys) == {k2} and set(stored.installed) == {k2}
+    for op in (keystore.use, keystore.remove):
+        with pytest.raises(KeyringError, match="no key") as err:
+            op(stored, "deadbeef")
+        assert err.value.status == 404
+    with pytest.raises(KeyringError) as err:
+        keystore.set_mode(stored, "lax")
+    assert err.value.status == 422
+    with pytest.raises(KeyringError, match="install") as err:
+        keystore.set_mode(StoredKeyring(), "sign")
+    assert err.value.status == 409
+
+
+# -- one daemon per state directory ----------------------------------------------------------
+
+
+def test_one_daemon_per_state_dir(tmp_path: Path) -> None:
+    fd = lock_state_dir(tmp_path)
+    try:
+        with pytest.raises(SdfrError, match=rf"in use by another sdfrd \(pid {os.getpid()}\)"):
+            lock_state_dir(tmp_path)
+    finally:
+        os.close(fd)
+    os.close(lock_state_dir(tmp_path))  # free again once the holder is gone
