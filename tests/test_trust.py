@@ -507,3 +507,16 @@ def test_two_daemons_with_one_robot_id_are_both_told() -> None:
     net.run_for(3 * BEACON)
     assert first.core.conflict is not None and first.core.conflict.address == twin.addr[0]
     assert twin.core.conflict is not None and twin.core.conflict.address == first.addr[0]
+
+
+def test_a_set_too_large_to_announce_is_reported_not_raised() -> None:
+    """A set beyond 255 parts (the API refuses to build one; an old state dir may hold one)
+    must not stop the core: it beacons, says why it cannot announce, and serves nothing."""
+    net = SimNet(seed=125)
+    big = [Service(f"s{i:04d}", "n" * 120, "sensor.kind", url="u" * 250) for i in range(1200)]
+    node = net.add("r1", services=big, beacon_interval=BEACON, ping_interval=BEACON / 2)
+    assert node.core.announce_error is not None and "update parts" in node.core.announce_error
+    net.add("r2", services=services("r2", 2), beacon_interval=BEACON, ping_interval=BEACON / 2)
+    net.run_for(3 * BEACON)
+    assert net.sees("r2", "r1") and net.sees("r1", "r2")  # still beaconing and pinging
+    assert net.nodes["r2"].core.peers["r1"].services == ()

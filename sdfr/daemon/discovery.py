@@ -78,6 +78,7 @@ class DiscoveryLayer:
         keyring = keystore.load_keyring(cfg.state_dir)
         self._errors: deque[float] = deque()
         self._last_error: tuple[float, str] | None = None
+        self._conflict_logged: tuple[str, int, float] | None = None  # address, boot, when
         self.address = netif.ipv4(self.iface) or ""
         self.core = Core(
             CoreConfig(
@@ -442,7 +443,26 @@ class DiscoveryLayer:
                 self.core.set_location(self._location(), time.monotonic())
                 self._pump()
 
+    def _log_conflict(self) -> None:
+        """Say so when another sender claims our robot id: at once, then once a minute."""
+        c = self.core.conflict
+        if c is None:
+            return
+        now = time.monotonic()
+        last = self._conflict_logged
+        if last is None or last[:2] != (c.address, c.boot_id) or now - last[2] >= 60.0:
+            self._conflict_logged = (c.address, c.boot_id, now)
+            log.warning(
+                "another sender claims robot id %s: %s (boot %d, %d datagrams so far); two "
+                "daemons with one id fight over it: give each its own --robot-id",
+                self.cfg.robot_id,
+                c.address,
+                c.boot_id,
+                c.count,
+            )
+
     def _write_status(self) -> None:
+        self._log_conflict()
         c = self.core.counters
         reachable = sum(1 for p in self.core.peers.values() if p.reachable)
         self.store.write_status(
