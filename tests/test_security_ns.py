@@ -371,8 +371,8 @@ def test_two_daemons_with_one_robot_id_are_reported(fleet_factory: Callable[...,
 
     poll("both told", lambda: reported("r2", "r3") and reported("r3", "r2"), 4 * BEACON)
     assert "sdfr_robot_id_conflicts_total 0" not in lab.client("r2").metrics()
-    poll("and it is in the log",
-         lambda: "another sender claims robot id r2" in lab.robot("r2").log.read_text(), 3.0)  # fmt: skip
+    log = lab.robot("r2").log
+    poll("and it is in the log", lambda: "another sender claims robot id r2" in log.read_text(), 3)
 
 
 # -- bounded cost ----------------------------------------------------------------------------
