@@ -23,13 +23,13 @@ Trust (see also sdfr.auth):
   is parsed, and one whose counter was seen already in that boot (a replay) right after.
 - A claim that contradicts what a robot last proved is never applied on the word of one
   datagram: an older boot, a datagram after that boot's Byebye, an older version, a new
-  address.  It is answered with a *challenge*, a ping to
-  the address it came from, and the robot's answer to that (its boot, version and digest,
-  fresh by construction) is what is believed.  So nothing is ever locked out for good.
+  address.  It is answered with a *challenge*, a ping to the address it came from, and the
+  robot's answer to that (its boot, version and digest, fresh by construction) is what is
+  believed.  So nothing is ever locked out for good.
 - A robot heard only through unsigned datagrams is *unproven* until it answers a ping: it is
   challenged at once (and again every ping timeout while it stays unproven), neither saved
-  nor listed, and forgotten after a miss limit of silence.  At most MAX_UNPROVEN of them are held,
-  and MAX_PEERS robots in all.
+  nor listed, and forgotten after a miss limit of silence.  At most MAX_UNPROVEN of them are
+  held, and MAX_PEERS robots in all.
 - An address that has not answered a ping of ours never gets more bytes than it sent: its
   unicast fetch waits for its answer to a challenge, and its multicast search is answered by
   multicast, at most once every MCAST_SET_GAP.  Work is bounded per source address
@@ -175,8 +175,6 @@ class Peer:
     fetch: _Fetch | None = None
     window: ReplayWindow = field(default_factory=ReplayWindow)
     challenged_at: float = -math.inf
-    #: Challenges an unproven peer left unanswered in a row.
-    misses: int = 0
     #: A fetch it asked for before its address was proven: (address, parts wanted or None).
     deferred: tuple[Addr, tuple[int, ...] | None] | None = None
 
@@ -455,8 +453,6 @@ class Core:
             if peer is not None and ping.addr == peer.address:
                 # (A challenge to another address says nothing of the peer's link.)
                 self._settle_ping(peer, ok=False)
-                if not peer.proven:
-                    peer.misses += 1
         for peer in list(self.peers.values()):
             if not peer.proven and now >= peer.last_heard + cfg.dead_after:
                 self._forget(peer)
@@ -585,11 +581,10 @@ class Core:
                 digest=origin.digest,
                 proven=seal is not None,
             )
-            if seal is None:
-                self._unproven += 1
             if seal is not None:
                 peer.window.accept(origin.boot_id, seal.counter)
             else:
+                self._unproven += 1
                 self._challenge(peer, src, now)
             return peer, None
         if (
@@ -889,7 +884,6 @@ class Core:
         if not peer.proven:
             peer.proven = True
             self._unproven -= 1
-            peer.misses = 0
             peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
             self._dirty.add(peer.robot_id)
         if peer.deferred is not None:
