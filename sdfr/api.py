@@ -642,14 +642,21 @@ async def keys_list(request: web.Request) -> web.Response:
     return _json_response(_keys_json(state, keystore.load(state.cfg.state_dir)))
 
 
+async def _one_text_field(request: web.Request, name: str, shape: str) -> str:
+    """The body `{name: "..."}` and nothing else; a 422 naming `name` otherwise."""
+    obj = await _read_json(request)
+    if not isinstance(obj, dict) or set(obj) != {name} or not isinstance(obj[name], str):
+        raise ValidationError(name, f"expected {{{name!r}: {shape}}}".replace("'", '"'))
+    value: str = obj[name]
+    return value
+
+
 async def keys_install(request: web.Request) -> web.Response:
     _need_unix_socket(request)
     state = _state(request)
-    obj = await _read_json(request)
-    if not isinstance(obj, dict) or set(obj) != {"key"} or not isinstance(obj["key"], str):
-        raise ValidationError("key", 'expected {"key": "<base64 of 32 bytes>"}')
+    text = await _one_text_field(request, "key", '"<base64 of 32 bytes>"')
     try:
-        key = keystore.parse_key(obj["key"], "key")
+        key = keystore.parse_key(text, "key")
     except ConfigError as exc:
         raise ValidationError("key", str(exc).removeprefix("key: ")) from None
     stored, added = keystore.install(keystore.load(state.cfg.state_dir), key, time.time())
@@ -681,11 +688,9 @@ async def keys_remove(request: web.Request) -> web.Response:
 async def keys_mode(request: web.Request) -> web.Response:
     _need_unix_socket(request)
     state = _state(request)
-    obj = await _read_json(request)
-    if not isinstance(obj, dict) or set(obj) != {"mode"} or not isinstance(obj["mode"], str):
-        raise ValidationError("mode", 'expected {"mode": "accept" | "sign" | "enforce"}')
-    stored = keystore.set_mode(keystore.load(state.cfg.state_dir), obj["mode"])
-    _save_keyring(state, stored, f"mode {obj['mode']}")
+    mode = await _one_text_field(request, "mode", '"accept" | "sign" | "enforce"')
+    stored = keystore.set_mode(keystore.load(state.cfg.state_dir), mode)
+    _save_keyring(state, stored, f"mode {mode}")
     return _json_response(_keys_json(state, stored))
 
 

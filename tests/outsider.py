@@ -23,6 +23,7 @@ import socket
 import struct
 import sys
 import time
+from collections.abc import Iterator
 
 from sdfr import wire
 
@@ -81,28 +82,33 @@ def cmd_send(args: argparse.Namespace) -> int:
     return 0
 
 
+def _received(sock: socket.socket, timeout: float) -> Iterator[tuple[bytes, tuple[str, int]]]:
+    """The datagrams `sock` receives until `timeout` seconds from now."""
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            data, src = sock.recvfrom(4096)
+        except TimeoutError:
+            return
+        yield data, src
+
+
 def cmd_capture(args: argparse.Namespace) -> int:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("", PORT))
     mreq = struct.pack("4s4s", socket.inet_aton(GROUP), socket.inet_aton("0.0.0.0"))
     sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
-    deadline = time.monotonic() + args.timeout
     found = 0
     needle = args.match.encode()
-    while found < args.count:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            break
-        sock.settimeout(left)
-        try:
-            data, src = sock.recvfrom(4096)
-        except TimeoutError:
-            break
+    for data, src in _received(sock, args.timeout):
         if needle in data and (args.sender is None or src[0] == args.sender):
             print(data.hex(), flush=True)
             found += 1
-    return 0 if found >= args.count else 1
+            if found >= args.count:
+                return 0
+    return 1
 
 
 def cmd_flood(args: argparse.Namespace) -> int:
@@ -136,17 +142,8 @@ def cmd_flood(args: argparse.Namespace) -> int:
 def cmd_listen(args: argparse.Namespace) -> int:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("", args.port))
-    deadline = time.monotonic() + args.timeout
     count = total = 0
-    while True:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            break
-        sock.settimeout(left)
-        try:
-            data, _ = sock.recvfrom(4096)
-        except TimeoutError:
-            break
+    for data, _ in _received(sock, args.timeout):
         count += 1
         total += len(data)
     print(json.dumps({"datagrams": count, "bytes": total}), flush=True)
