@@ -10,6 +10,7 @@ connection made it).
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import os
@@ -23,6 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from aiohttp import web
+from aiohttp.http_exceptions import LineTooLong
+from aiohttp.web_protocol import RequestHandler
+from aiohttp.web_request import BaseRequest
 
 from sdfr import __version__, auth, keystore, wire
 from sdfr.config import Config, location_max_len
@@ -58,6 +62,14 @@ LATENCY_BUCKETS = (
 MAX_BODY = 64 * 1024
 #: Callback failures of the discovery layer within a minute that make /health say "failing".
 FAILING_AFTER = 3
+#: Longest a request body may take to arrive (a slow sender holds a connection, no more).
+BODY_TIMEOUT = 10.0
+#: An idle or half-sent connection is closed after this many seconds (slowloris).
+IDLE_TIMEOUT = 15.0
+#: Methods whose body, when there is one, must be JSON.
+_BODY_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+#: Names the local API always answers to.
+_LOCAL_HOSTS = frozenset({"127.0.0.1", "localhost", "::1"})
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
@@ -99,7 +111,12 @@ def _reject_constant(name: str) -> float:
 
 
 async def _read_json(request: web.Request) -> Any:
-    raw = await request.read()
+    try:
+        raw = await asyncio.wait_for(request.read(), BODY_TIMEOUT)
+    except TimeoutError:
+        raise RequestError(
+            408, f"the request body did not arrive within {BODY_TIMEOUT:.0f} s"
+        ) from None
     if not raw.strip():
         raise RequestError(400, "the request body is empty; expected a JSON object")
     try:
@@ -109,6 +126,8 @@ async def _read_json(request: web.Request) -> Any:
         raise RequestError(400, "invalid JSON: the body is not UTF-8") from None
     except ValueError as exc:
         raise RequestError(400, f"invalid JSON: {exc}") from None
+    except RecursionError:
+        raise RequestError(400, "invalid JSON: nested too deeply") from None
 
 
 def _http_message(exc: web.HTTPException, request: web.Request) -> str:
@@ -139,6 +158,73 @@ async def _errors_as_json(request: web.Request, handler: Handler) -> web.StreamR
     except Exception:
         log.exception("%s %s failed", request.method, request.path)
         return _error(500, "internal error; the daemon's log has the details")
+
+
+# -- who may knock -----------------------------------------------------------------------------
+
+
+def over_unix_socket(request: web.Request) -> bool:
+    transport = request.transport
+    sock = transport.get_extra_info("socket") if transport is not None else None
+    return sock is not None and sock.family == socket.AF_UNIX
+
+
+def host_name(header: str) -> str:
+    """The name or address in a Host header, without its port or brackets, lower case."""
+    value = header.strip().lower()
+    if value.startswith("["):
+        return value[1 : value.find("]")] if "]" in value else value
+    name, colon, port = value.rpartition(":")
+    return name if colon and port.isdigit() and ":" not in name else value
+
+
+def allowed_hosts(cfg: Config) -> frozenset[str]:
+    api_host = cfg.api.rpartition(":")[0].strip("[]").lower()
+    return _LOCAL_HOSTS | {api_host} | {host_name(h) for h in cfg.api_allowed_hosts}
+
+
+@web.middleware
+async def _doors(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """The write API is for programs on this robot, not for web pages they happen to show.
+
+    - Host must be one of this API's own names (else a page on a name that resolves to
+      127.0.0.1 could read the fleet: DNS rebinding); not checked on the unix socket.
+    - A browser's cross-site request (Origin, Sec-Fetch-Site) is refused unless its origin
+      is in api_allowed_origins; programs send neither header.
+    - A body must be JSON: a form or text/plain body is what a page can send without asking.
+    """
+    state = _state(request)
+    if not over_unix_socket(request):
+        host = request.headers.get("Host")
+        if host is not None and host_name(host) not in state.hosts:
+            raise RequestError(
+                403,
+                f"Host {host!r} is not a name of this API (allowed: "
+                f"{', '.join(sorted(state.hosts))}; add more with api_allowed_hosts)",
+                "Host",
+            )
+    origin = request.headers.get("Origin")
+    site = request.headers.get("Sec-Fetch-Site")
+    cross = origin is not None or (site is not None and site not in ("same-origin", "none"))
+    if cross and origin not in state.cfg.api_allowed_origins:
+        raise RequestError(
+            403,
+            f"a cross-site request from a web page ({origin or site}) is refused; a page may "
+            "call the local API only from an origin in api_allowed_origins",
+            "Origin",
+        )
+    if (
+        request.method in _BODY_METHODS
+        and request.body_exists
+        and request.content_type != "application/json"
+    ):
+        raise RequestError(
+            415,
+            f"the body must be JSON (Content-Type: application/json), not "
+            f"{request.headers.get('Content-Type') or 'untyped'}",
+            "Content-Type",
+        )
+    return await handler(request)
 
 
 # -- discovery notification --------------------------------------------------------------------
@@ -316,6 +402,7 @@ class ApiState:
     cfg: Config
     view: StoreView
     latency: dict[tuple[str, str], _Histogram] = field(default_factory=dict)
+    hosts: frozenset[str] = frozenset()
 
     @property
     def store(self) -> Store:
@@ -597,9 +684,7 @@ async def health(request: web.Request) -> web.Response:
 def _need_unix_socket(request: web.Request) -> None:
     """Key management is for whoever may open STATE_DIR/api.sock (its file mode says who),
     never for any program that can reach a TCP port."""
-    transport = request.transport
-    sock = transport.get_extra_info("socket") if transport is not None else None
-    if sock is None or sock.family != socket.AF_UNIX:
+    if not over_unix_socket(request):
         path = _state(request).cfg.state_dir / "api.sock"
         raise RequestError(
             403,
@@ -1236,10 +1321,63 @@ def openapi_document() -> dict[str, Any]:
 # -- applications ------------------------------------------------------------------------------
 
 
+_PARSE_ERRORS = {
+    400: "malformed HTTP request",
+    413: "the request is too large",
+    414: "the request line (path and query) is longer than 8190 bytes",
+    431: "a request header is longer than 8190 bytes, or there are too many",
+}
+
+
+class _JsonErrorHandler(RequestHandler):
+    """aiohttp's connection handler, answering what fails before any handler runs (a
+    malformed request, an oversize line or header, a method no parser knows) in JSON like
+    every other error, and logging it at debug level (a port scan must not fill the log)."""
+
+    def handle_error(
+        self,
+        request: BaseRequest,
+        status: int = 500,
+        exc: BaseException | None = None,
+        message: str | None = None,
+    ) -> web.StreamResponse:
+        log.debug("%s from %s: %s", status, request.remote, message or exc)
+        if request.writer.output_size > 0:
+            raise ConnectionError("a response was sent already; cannot send an error")
+        text = _PARSE_ERRORS.get(status, "internal error; the daemon's log has the details")
+        detail = (message or "").strip().splitlines()
+        if isinstance(exc, LineTooLong):
+            text = "the request line or a header is longer than 8190 bytes"
+        elif status == 400 and detail:
+            text = f"{text}: {detail[0][:120]}"
+        resp = _error(status, text)
+        resp.force_close()
+        return resp
+
+
+class _JsonErrorServer(web.Server):
+    def __call__(self) -> RequestHandler:
+        return _JsonErrorHandler(self, loop=self._loop, **self._kwargs)
+
+
+class Runner(web.AppRunner):
+    """An AppRunner whose every answer is JSON (see _JsonErrorHandler) and which closes idle
+    and half-sent connections after IDLE_TIMEOUT."""
+
+    def __init__(self, app: web.Application, **kwargs: Any) -> None:
+        kwargs.setdefault("keepalive_timeout", IDLE_TIMEOUT)
+        super().__init__(app, **kwargs)
+
+    async def _make_server(self) -> web.Server:
+        server = await super()._make_server()
+        server.__class__ = _JsonErrorServer  # same state; only __call__ differs
+        return server
+
+
 def create_app(cfg: Config, store: Store) -> web.Application:
     """The local REST API."""
-    app = web.Application(middlewares=[_measure, _errors_as_json], client_max_size=MAX_BODY)
-    app[STATE] = ApiState(cfg=cfg, view=StoreView(store, cfg))
+    app = web.Application(middlewares=[_measure, _errors_as_json, _doors], client_max_size=MAX_BODY)
+    app[STATE] = ApiState(cfg=cfg, view=StoreView(store, cfg), hosts=allowed_hosts(cfg))
     openapi_body = _json_bytes(openapi_document())
 
     async def openapi(request: web.Request) -> web.Response:

@@ -54,6 +54,8 @@ class Config:
     key_file: Path | None = None
     auth: str | None = None
     ssdp_interop: str = "auto"
+    api_allowed_hosts: tuple[str, ...] = ()
+    api_allowed_origins: tuple[str, ...] = ()
 
     @property
     def effective_ping_interval(self) -> float:
@@ -106,6 +108,15 @@ class Config:
             )
         if self.ssdp_interop not in ("auto", "on", "off"):
             raise ConfigError(f"ssdp_interop: must be auto, on or off, got {self.ssdp_interop!r}")
+        for host in self.api_allowed_hosts:
+            if not re.fullmatch(r"[A-Za-z0-9.:\[\]_-]{1,253}", host):
+                raise ConfigError(f"api_allowed_hosts: {host!r} is not a host name or address")
+        for origin in self.api_allowed_origins:
+            if not re.fullmatch(r"https?://[A-Za-z0-9.\[\]:_-]+(:[0-9]{1,5})?", origin):
+                raise ConfigError(
+                    f"api_allowed_origins: {origin!r} is not an origin such as "
+                    "http://dashboard.local:8080 (scheme, host and port, no path)"
+                )
         return self
 
     def _validate_wifi(self) -> None:
@@ -224,12 +235,21 @@ _HELP: dict[str, str] = {
     "a flag day (default: the keyring's mode; enforce for a new keyring)",
     "ssdp_interop": "answer plain SSDP clients' ssdp:all searches (read-only): auto (only while "
     "the fleet has no key), on or off (default auto)",
+    "api_allowed_hosts": "more names the local API may be reached by (the Host header), comma "
+    "separated; 127.0.0.1, localhost, ::1 and the --api host always are. Anything else is "
+    "refused: a web page cannot reach the API through a name it controls (DNS rebinding)",
+    "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
+    "http://dashboard.local:8080), comma separated; default none: a request a browser sends "
+    "for another site's page is refused",
 }
 
 
 def option_help(name: str) -> str:
     """The help text of the option `name` (a Config field), for other commands that take it."""
     return _HELP[name]
+
+
+_LISTS = ("api_allowed_hosts", "api_allowed_origins")
 
 
 def _coerce(name: str, raw: Any) -> Any:
@@ -246,6 +266,11 @@ def _coerce(name: str, raw: Any) -> Any:
     }
     if name in ("state_dir", "wifi_secret_file", "key_file"):
         return Path(str(raw))
+    if name in _LISTS:
+        items = raw.split(",") if isinstance(raw, str) else raw
+        if not isinstance(items, list | tuple) or not all(isinstance(i, str) for i in items):
+            raise ConfigError(f"{name}: expected a list of strings, got {raw!r}")
+        return tuple(i.strip() for i in items if i.strip())
     kind = kinds.get(name)
     if kind is None:
         if not isinstance(raw, str):
@@ -322,6 +347,9 @@ def to_args(cfg: Config) -> list[str]:
         if f.name in _NOT_PASSED:
             continue
         value = getattr(cfg, f.name)
-        if value is not None:
+        if isinstance(value, tuple):
+            if value:
+                out += ["--" + f.name.replace("_", "-"), ",".join(value)]
+        elif value is not None:
             out += ["--" + f.name.replace("_", "-"), str(value)]
     return out

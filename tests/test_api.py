@@ -24,6 +24,8 @@ from aiohttp.test_utils import TestClient, TestServer
 from sdfr import auth, keystore, wire
 from sdfr.api import (
     HEARTBEAT_STALE,
+    MAX_BODY,
+    Runner,
     create_app,
     create_describe_app,
     notify_discovery,
@@ -187,7 +189,9 @@ async def test_unknown_paths_and_methods_answer_json(cfg: Config, store: Store) 
         assert r.status == 405
         assert set(r.headers["Allow"].split(",")) == {"GET", "POST"}
         assert "PUT" in (await r.json())["error"]
-        r = await c.post("/services", data=b"x" * 100_000)
+        r = await c.post(
+            "/services", data=b"x" * 100_000, headers={"Content-Type": "application/json"}
+        )
         assert r.status == 413
         assert "error" in await r.json()
 
@@ -706,3 +710,103 @@ async def test_the_keyring_over_the_unix_socket(
     stored = keystore.load(cfg.state_dir)
     assert stored.keyring == Keyring.of([k2], mode="enforce")
     assert not any(b64[k1] in b or b64[k2] in b for b in bodies)  # never key material
+
+
+# -- the doors: who may knock, and what every answer looks like ---------------------------------
+
+
+@aio
+async def test_what_a_web_page_can_send_is_refused(cfg: Config, store: Store) -> None:
+    body = {"name": "cam", "type": "sensor.camera"}
+    async with serve(create_app(cfg, store)) as c:
+        for data, ctype in (
+            (json.dumps(body), "text/plain"),
+            ("name=cam&type=sensor.camera", "application/x-www-form-urlencoded"),
+            ('--x\r\nContent-Disposition: form-data; name="a"\r\n\r\n1\r\n--x--\r\n',
+             "multipart/form-data; boundary=x"),
+        ):  # fmt: skip
+            r = await c.post("/services", data=data, headers={"Content-Type": ctype})
+            assert r.status == 415, ctype
+            assert (await r.json())["field"] == "Content-Type"
+        r = await c.post("/services", json=body, headers={"Origin": "http://evil.example"})
+        assert r.status == 403 and (await r.json())["field"] == "Origin"
+        r = await c.get("/neighbors", headers={"Sec-Fetch-Site": "cross-site"})
+        assert r.status == 403
+        r = await c.get("/neighbors", headers={"Host": "evil.example"})  # DNS rebinding
+        answer = await r.json()
+        assert r.status == 403 and answer["field"] == "Host" and "127.0.0.1" in answer["error"]
+        assert store.local_state() == (0, [])
+        # What programs send is fine: no Origin, the API's own names, JSON bodies.
+        for host in ("127.0.0.1:8700", "localhost", "[::1]:8700"):
+            assert (await c.get("/neighbors", headers={"Host": host})).status == 200
+        r = await c.post("/services", json=body, headers={"Sec-Fetch-Site": "none"})
+        assert r.status == 201
+
+
+@aio
+async def test_trusted_pages_and_names_can_be_configured(tmp_path: Path, store: Store) -> None:
+    cfg = Config(
+        state_dir=store.path.parent,
+        robot_id="r1",
+        api_allowed_hosts=("robot-7.local",),
+        api_allowed_origins=("http://dashboard.local:8080",),
+    )
+    async with serve(create_app(cfg, store)) as c:
+        headers = {"Host": "robot-7.local:8700", "Origin": "http://dashboard.local:8080"}
+        assert (await c.get("/neighbors", headers=headers)).status == 200
+        headers["Origin"] = "http://dashboard.local:9999"
+        assert (await c.get("/neighbors", headers=headers)).status == 403
+
+
+@aio
+async def test_json_nested_deeper_than_any_service_is_a_400(cfg: Config, store: Store) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        for depth in (10_000, 32_000):
+            data = "[" * depth + "]" * depth
+            assert len(data) < MAX_BODY
+            r = await c.post("/services", data=data, headers={"Content-Type": "application/json"})
+            assert r.status == 400 and "nested too deeply" in (await r.json())["error"]
+
+
+def raw_exchange(port: int, request: bytes) -> tuple[int, str, dict[str, Any]]:
+    """Send bytes to the server, read its whole answer: status, content type, JSON body."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+        sock.sendall(request)
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    headers = {k.lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
+    return int(lines[0].split()[1]), headers.get("content-type", ""), json.loads(body)
+
+
+@aio
+async def test_errors_before_any_handler_are_json_too(cfg: Config, store: Store) -> None:
+    runner = Runner(create_app(cfg, store))
+    await runner.setup()
+    port = free_port()
+    await web.TCPSite(runner, "127.0.0.1", port).start()
+    try:
+        many = b"".join(b"X-%d: 1\r\n" % i for i in range(200))
+        cases = [
+            (b"GET /neighbors?" + b"a" * 9000 + b" HTTP/1.1\r\nHost: x\r\n\r\n", "8190"),
+            (b"GET /neighbors HTTP/1.1\r\nHost: x\r\nX-Big: " + b"b" * 9000 + b"\r\n\r\n", "8190"),
+            (b"GET /neighbors HTTP/1.1\r\nHost: x\r\n" + many + b"\r\n", "headers"),
+            (b"FROB /neighbors HTTP/1.1\r\nHost: localhost\r\n\r\n", "method"),
+            (b"\x16\x03\x01\x02\x00garbage\r\n\r\n", "malformed"),
+        ]
+        for request, says in cases:
+            status, ctype, body = await asyncio.to_thread(raw_exchange, port, request)
+            assert status == 400 and ctype.startswith("application/json"), (request[:20], status)
+            assert set(body) == {"error", "field"} and says in body["error"], body
+            assert len(body["error"]) < 200  # the request is not echoed back
+    finally:
+        await runner.cleanup()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port

@@ -18,8 +18,9 @@ from pathlib import Path
 
 from aiohttp import web
 
-from sdfr.api import create_app, create_describe_app
+from sdfr.api import Runner, create_app, create_describe_app
 from sdfr.config import Config, from_args, split_hostport
+from sdfr.daemon import logs
 from sdfr.errors import ConfigError
 from sdfr.store import Store, StoreError
 
@@ -77,10 +78,10 @@ async def _start_tcp(runner: web.AppRunner, flag: str, value: str) -> None:
 async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
     """Serve until `stop` is set."""
     access_log = logging.getLogger("aiohttp.access") if cfg.log_level == "debug" else None
-    api_runner = web.AppRunner(
+    api_runner = Runner(
         create_app(cfg, store), access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT
     )
-    describe_runner = web.AppRunner(
+    describe_runner = Runner(
         create_describe_app(cfg, store), access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT
     )
     sock_path = api_socket_path(cfg.state_dir)
@@ -122,11 +123,7 @@ async def _run(cfg: Config, store: Store) -> None:
 
 
 def _setup_logging(level: str) -> None:
-    logging.basicConfig(
-        stream=sys.stderr,
-        level=getattr(logging, level.upper()),
-        format=f"%(asctime)s {PREFIX} %(levelname)s %(name)s: %(message)s",
-    )
+    logs.setup(f"%(asctime)s {PREFIX} %(levelname)s %(name)s: %(message)s", level)
 
 
 def _fail(message: str) -> int:

@@ -23,6 +23,7 @@ from pathlib import Path
 from sdfr import keystore, netif
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import Config, from_args, location_url
+from sdfr.daemon import logs
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.errors import SdfrError
 from sdfr.protocol import MESSAGE_TYPES, Core, CoreConfig, PeerView
@@ -558,9 +559,7 @@ def main(argv: list[str] | None = None) -> int:
     except SdfrError as exc:
         print(f"sdfrd[discovery]: {exc}", flush=True)
         return 2
-    logging.basicConfig(
-        level=cfg.log_level.upper(), format="sdfrd[discovery] %(levelname)s %(message)s"
-    )
+    logs.setup("sdfrd[discovery] %(levelname)s %(message)s", cfg.log_level)
     try:
         asyncio.run(_amain(cfg))
     except SdfrError as exc:

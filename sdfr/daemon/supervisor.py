@@ -25,6 +25,7 @@ from pathlib import Path
 
 from sdfr import keystore, netif, wifi
 from sdfr.config import Config, from_args, to_args
+from sdfr.daemon import logs
 from sdfr.errors import SdfrError
 from sdfr.store import Store
 
@@ -180,7 +181,7 @@ class Supervisor:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="sdfrd %(levelname)s %(message)s")
+    logs.setup("sdfrd %(levelname)s %(message)s")
     try:
         cfg = resolve(from_args(argv))
         logging.getLogger().setLevel(cfg.log_level.upper())
