@@ -33,7 +33,7 @@ from sdfr.config import Config, location_max_len
 from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringError, StoredKeyring
 from sdfr.model import Service
-from sdfr.store import PeerRecord, Store, StoreError
+from sdfr.store import Op, PeerRecord, StateWriteError, Store, StoreError
 from sdfr.wire import check_service_fits
 
 log = logging.getLogger("sdfr.api")
@@ -149,6 +149,10 @@ async def _errors_as_json(request: web.Request, handler: Handler) -> web.StreamR
         return _error(422, exc.message, exc.field)
     except (RequestError, KeyringError) as exc:
         return _error(exc.status, exc.message, exc.field)
+    except StateWriteError as exc:
+        # Nothing was stored: say why, and let /health say it too until a write succeeds.
+        _state(request).write_problem = (time.time(), exc.reason, str(exc))
+        return _error(507 if exc.reason == "full" else 503, str(exc), "state_dir")
     except web.HTTPException as exc:
         if exc.status < 400:
             raise
@@ -277,9 +281,9 @@ class DiscoveryState:
     status: dict[str, Any]
 
 
-def discovery_state(store: Store, now: float | None = None) -> DiscoveryState:
+def discovery_state(status: Mapping[str, Any], now: float | None = None) -> DiscoveryState:
     """Up iff the status's pid is alive and its heartbeat is younger than HEARTBEAT_STALE."""
-    status = store.read_status()
+    status = dict(status)
     heartbeat = status.get("heartbeat")
     age: float | None = None
     if isinstance(heartbeat, int | float) and not isinstance(heartbeat, bool):
@@ -395,14 +399,83 @@ class _Histogram:
         self.count += 1
 
 
+class Writer:
+    """Commits changes of the local registrations durably (fsync), off the event loop.
+
+    Requests that arrive while a commit runs go together into the next one (group commit):
+    a burst of publishes costs a few fsyncs, not one each, and a 201 still means on disk.
+    """
+
+    def __init__(self, state_dir: Path) -> None:
+        self.state_dir = state_dir
+        self._store: Store | None = None
+        self._queue: list[tuple[Op, asyncio.Future[int | StoreError | None]]] = []
+        self._task: asyncio.Task[None] | None = None
+
+    async def write(self, op: Op) -> int | StoreError | None:
+        """Apply `op`; what Store.apply says of it. StateWriteError when nothing could be."""
+        fut: asyncio.Future[int | StoreError | None] = asyncio.get_running_loop().create_future()
+        self._queue.append((op, fut))
+        if self._task is None or self._task.done():
+            self._task = asyncio.create_task(self._drain())
+        return await fut
+
+    async def _drain(self) -> None:
+        while self._queue:
+            batch, self._queue = self._queue, []
+            try:
+                results = await asyncio.to_thread(self._apply, [op for op, _ in batch])
+            except StoreError as exc:
+                for _, fut in batch:
+                    if not fut.done():
+                        fut.set_exception(exc)
+                continue
+            for (_, fut), result in zip(batch, results, strict=True):
+                if not fut.done():
+                    fut.set_result(result)
+
+    def _apply(self, ops: list[Op]) -> list[int | StoreError | None]:
+        if self._store is None:
+            self._store = Store(self.state_dir, durable=True)
+        return self._store.apply(ops)
+
+    def close(self) -> None:
+        if self._store is not None:
+            self._store.close()
+            self._store = None
+
+
 @dataclass(slots=True)
 class ApiState:
     """What the handlers of one application share."""
 
+    def discovery(self) -> DiscoveryState:
+        """The discovery layer's latest status: the one it sent over STATUS_SOCKET while that
+        is fresh, else the file it writes (which survives a restart of this layer)."""
+        live = self.live_status
+        if live is not None:
+            beat = live.get("heartbeat")
+            if isinstance(beat, int | float) and time.time() - beat < HEARTBEAT_STALE:
+                return discovery_state(live)
+        return discovery_state(self.store.read_status())
+
+    def take_status(self, data: bytes) -> None:
+        """A status datagram from the discovery layer."""
+        try:
+            obj = json.loads(data)
+        except ValueError:
+            return
+        if isinstance(obj, dict):
+            self.live_status = obj
+
     cfg: Config
     view: StoreView
+    writer: Writer
     latency: dict[tuple[str, str], _Histogram] = field(default_factory=dict)
     hosts: frozenset[str] = frozenset()
+    #: The last failed write of the state directory (time, reason, message), until one works.
+    write_problem: tuple[float, str, str] | None = None
+    live_status: dict[str, Any] | None = None
 
     @property
     def store(self) -> Store:
@@ -439,13 +512,38 @@ async def _measure(request: web.Request, handler: Handler) -> web.StreamResponse
 # -- handlers: local registrations -------------------------------------------------------------
 
 
+def _published(service: Service, version: int, status: int) -> web.Response:
+    return _json_response(
+        {"id": service.id, "service": service.to_json(), "version": version},
+        status=status,
+        headers={"Location": f"/services/{service.id}"},
+    )
+
+
+def _published_already(state: ApiState, service: Service) -> web.Response | None:
+    """A publish under a chosen id that is stored already: the same service again (a client
+    retrying after a lost answer) gets 200 and nothing changes; another one, 409."""
+    stored = state.store.get_service(service.id)
+    if stored is None:
+        return None
+    if stored != service:
+        raise RequestError(
+            409,
+            f"service id {service.id!r} is taken by another service; choose another id, or "
+            "leave id out and the robot picks one",
+            "id",
+        )
+    return _published(stored, state.store.local_version(), 200)
+
+
 async def publish(request: web.Request) -> web.Response:
     state = _state(request)
     obj = await _read_json(request)
-    if isinstance(obj, dict) and "id" in obj:
-        raise ValidationError("id", "is assigned by the robot; leave it out")
-    service = Service.from_json(obj, service_id=secrets.token_hex(6))
+    chosen = isinstance(obj, dict) and "id" in obj
+    service = Service.from_json(obj, service_id=None if chosen else secrets.token_hex(6))
     check_service_fits(service)
+    if chosen and (again := _published_already(state, service)) is not None:
+        return again
     # What the fleet can never see must not be acknowledged: one announcement is at most
     # MAX_PARTS datagrams.
     needed = state.view.parts_with(service)
@@ -457,30 +555,31 @@ async def publish(request: web.Request) -> web.Response:
             "services",
         )
     for _ in range(3):
-        try:
-            version = state.store.add_service(service)
+        result = await state.writer.write(("add", service))
+        if isinstance(result, int):
             break
-        except StoreError:  # the random id exists already: draw another
-            service = replace(service, id=secrets.token_hex(6))
+        if chosen:  # the same id published by a request that was in flight with this one
+            again = _published_already(state, service)
+            assert again is not None
+            return again
+        service = replace(service, id=secrets.token_hex(6))  # the random id exists: another
     else:
         raise RequestError(500, "could not allocate a service id")
+    state.write_problem = None
     notify_discovery(state.cfg.state_dir)
-    log.info("published %s (%s, %s), version %d", service.id, service.name, service.type, version)
-    return _json_response(
-        {"id": service.id, "service": service.to_json(), "version": version},
-        status=201,
-        headers={"Location": f"/services/{service.id}"},
-    )
+    log.info("published %s (%s, %s), version %d", service.id, service.name, service.type, result)
+    return _published(service, result, 201)
 
 
 async def unpublish(request: web.Request) -> web.Response:
     state = _state(request)
     service_id = request.match_info["id"]
-    version = state.store.remove_service(service_id)
+    version = await state.writer.write(("remove", service_id))
     if version is None:
         raise RequestError(404, f"no local service with id {service_id!r}", "id")
+    state.write_problem = None
     notify_discovery(state.cfg.state_dir)
-    log.info("unpublished %s, version %d", service_id, version)
+    log.info("unpublished %s, version %s", service_id, version)
     return web.Response(status=204)
 
 
@@ -598,7 +697,7 @@ def _discovery_json(disc: DiscoveryState) -> dict[str, Any]:
 
 async def self_info(request: web.Request) -> web.Response:
     state = _state(request)
-    disc = discovery_state(state.store)
+    disc = state.discovery()
     version, services = state.view.local()
     status = disc.status
     return _json_response(
@@ -659,11 +758,25 @@ def health_warnings(status: Mapping[str, Any], now: float | None = None) -> list
     return out
 
 
+def state_problem(state: ApiState, disc: DiscoveryState) -> tuple[str, str] | None:
+    """Why the state directory cannot be written, if it cannot: (full | read-only | error,
+    message), from this layer's last failed write (until one works) or the discovery
+    layer's report."""
+    if state.write_problem is not None and time.time() - state.write_problem[0] < 60.0:
+        return state.write_problem[1], state.write_problem[2]
+    report = _mapping(disc.status.get("state"))
+    if disc.up and report.get("writable") is False:
+        return str(report.get("reason") or "error"), str(report.get("error") or "")
+    return None
+
+
 async def health(request: web.Request) -> web.Response:
-    disc = discovery_state(_state(request).store)
+    state = _state(request)
+    disc = state.discovery()
     failing = discovery_error(disc.status) if disc.up else None
     warnings = health_warnings(disc.status) if disc.up else []
-    ok = disc.up and failing is None
+    cannot_write = state_problem(state, disc)
+    ok = disc.up and failing is None and cannot_write is None
     return _json_response(
         {
             "status": "degraded" if not ok else "warning" if warnings else "ok",
@@ -671,6 +784,8 @@ async def health(request: web.Request) -> web.Response:
             "discovery": "failing" if failing else "up" if disc.up else "down",
             "discovery_heartbeat_age": disc.heartbeat_age,
             "discovery_error": failing,
+            "state": "ok" if cannot_write is None else cannot_write[0],
+            "state_error": None if cannot_write is None else cannot_write[1],
             "auth": _mapping(disc.status.get("auth")).get("mode"),
             "warnings": warnings,
         },
@@ -798,7 +913,7 @@ def _mapping(value: object) -> Mapping[str, object]:
 
 def metrics_text(state: ApiState) -> str:
     """The Prometheus text exposition (format 0.0.4)."""
-    disc = discovery_state(state.store)
+    disc = state.discovery()
     counters = _mapping(disc.status.get("counters"))
     peers = state.view.peers()
     _, local = state.view.local()
@@ -1053,14 +1168,16 @@ def openapi_document() -> dict[str, Any]:
                 "discovery",
                 "discovery_heartbeat_age",
                 "discovery_error",
+                "state",
+                "state_error",
                 "auth",
                 "warnings",
             ],
             "properties": {
                 "status": {
                     "enum": ["ok", "warning", "degraded"],
-                    "description": "degraded: the discovery layer is down or failing (503); "
-                    "warning: up, with warnings to look at",
+                    "description": "degraded: the discovery layer is down or failing, or the "
+                    "state directory cannot be written (503); warning: up, with warnings",
                 },
                 "api": {"const": "up"},
                 "discovery": {
@@ -1070,6 +1187,12 @@ def openapi_document() -> dict[str, Any]:
                 },
                 "discovery_heartbeat_age": nullable_number,
                 "discovery_error": {"type": ["string", "null"]},
+                "state": {
+                    "enum": ["ok", "full", "read-only", "error"],
+                    "description": "Whether the state directory can be written (publishes "
+                    "need it); not ok answers 503 with the discovery layer up",
+                },
+                "state_error": {"type": ["string", "null"]},
                 "auth": {
                     "enum": ["open", "accept", "sign", "enforce", None],
                     "description": "The keyring's mode; open: no fleet key",
@@ -1377,7 +1500,15 @@ class Runner(web.AppRunner):
 def create_app(cfg: Config, store: Store) -> web.Application:
     """The local REST API."""
     app = web.Application(middlewares=[_measure, _errors_as_json, _doors], client_max_size=MAX_BODY)
-    app[STATE] = ApiState(cfg=cfg, view=StoreView(store, cfg), hosts=allowed_hosts(cfg))
+    writer = Writer(cfg.state_dir)
+    app[STATE] = ApiState(
+        cfg=cfg, view=StoreView(store, cfg), writer=writer, hosts=allowed_hosts(cfg)
+    )
+
+    async def close_writer(app: web.Application) -> None:
+        writer.close()
+
+    app.on_cleanup.append(close_writer)
     openapi_body = _json_bytes(openapi_document())
 
     async def openapi(request: web.Request) -> web.Response:
@@ -1402,34 +1533,4 @@ def create_app(cfg: Config, store: Store) -> web.Application:
     ]
     for method, path, handler in routes:
         app.router.add_route(method, path, handler)
-    return app
-
-
-def create_describe_app(cfg: Config, store: Store) -> web.Application:
-    """The read-only description other robots and SSDP clients fetch from LOCATION."""
-    app = web.Application(middlewares=[_errors_as_json], client_max_size=MAX_BODY)
-    view = StoreView(store)
-    cache: dict[tuple[object, ...], bytes] = {}
-
-    async def describe(request: web.Request) -> web.Response:
-        version, services = view.local()
-        status = store.read_status()
-        key = (version, status.get("robot_id"), status.get("address"), status.get("boot_id"))
-        body = cache.get(key)
-        if body is None:
-            cache.clear()
-            body = cache[key] = _json_bytes(
-                {
-                    "robot_id": _robot_id(cfg, status),
-                    "fleet": cfg.fleet,
-                    "address": status.get("address", ""),
-                    "boot_id": status.get("boot_id"),
-                    "version": version,
-                    "services": [s.to_json() for s in services],
-                }
-            )
-        return _json_response(body)
-
-    app.router.add_route("GET", "/description.json", describe)
-    app.router.add_route("GET", "/", describe)
     return app

@@ -19,7 +19,6 @@ from sdfr.client import (
     Client,
     neighbors_path,
     search_path,
-    service_body,
     service_path,
     split_api,
 )
@@ -375,8 +374,7 @@ def _neighbors(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
 
 def _publish(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
     attrs = {key: typed_value(value) for key, value in args.attr}
-    body = service_body(args.name, args.type, args.url, attrs or None)
-    answer = client.request("POST", "/services", body)
+    answer = client.publish_service(args.name, args.type, args.url, attrs or None)
     return answer, str(answer["id"])
 
 

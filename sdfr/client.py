@@ -14,7 +14,9 @@ from __future__ import annotations
 import base64
 import http.client
 import json
+import secrets
 import socket
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
@@ -26,6 +28,8 @@ from sdfr.errors import ApiError
 from sdfr.model import AttrValue, attr_text
 
 JsonObject = dict[str, Any]
+#: Pauses before sending a publish again when sdfrd could not be reached (it may restart).
+RETRY_DELAYS = (0.2, 1.0)
 
 # What a server closing an idle keep-alive connection looks like; worth one fresh attempt.
 _DROPPED = (
@@ -71,13 +75,22 @@ def service_path(service_id: str) -> str:
     return "/services/" + quote(service_id, safe="")
 
 
+def new_service_id() -> str:
+    """A fresh service id (12 hex characters), chosen by the client so that a retry of the
+    same publish cannot store it twice."""
+    return secrets.token_hex(6)
+
+
 def service_body(
     name: str,
     type: str,
     url: str | None = None,
     attributes: Mapping[str, AttrValue] | None = None,
+    service_id: str | None = None,
 ) -> JsonObject:
     body: JsonObject = {"name": name, "type": type}
+    if service_id is not None:
+        body["id"] = service_id
     if url is not None:
         body["url"] = url
     if attributes is not None:
@@ -212,10 +225,39 @@ class Client:
         type: str,
         url: str | None = None,
         attributes: Mapping[str, AttrValue] | None = None,
+        *,
+        service_id: str | None = None,
     ) -> str:
-        """Publish a service of this robot; returns its id."""
-        answer = self.request("POST", "/services", service_body(name, type, url, attributes))
+        """Publish a service of this robot; returns its id (see `publish_service`)."""
+        answer = self.publish_service(name, type, url, attributes, service_id=service_id)
         return str(answer["id"])
+
+    def publish_service(
+        self,
+        name: str,
+        type: str,
+        url: str | None = None,
+        attributes: Mapping[str, AttrValue] | None = None,
+        *,
+        service_id: str | None = None,
+    ) -> JsonObject:
+        """Publish a service of this robot; the daemon's answer (id, service, version).
+
+        The id is chosen here (`service_id`, or a fresh one) and sent with the service, so the
+        publish is idempotent: when the daemon cannot be reached or the answer is lost, it is
+        sent again, and a daemon that stored it already answers 200 instead of storing it
+        twice.
+        """
+        body = service_body(name, type, url, attributes, service_id or new_service_id())
+        for delay in (*RETRY_DELAYS, None):
+            try:
+                answer: JsonObject = self.request("POST", "/services", body)
+                return answer
+            except ApiError as exc:
+                if exc.status != 0 or delay is None:
+                    raise
+                time.sleep(delay)
+        raise AssertionError("unreachable")
 
     def unpublish(self, service_id: str) -> None:
         self.request("DELETE", service_path(service_id))

@@ -15,7 +15,9 @@ from sdfr.errors import ConfigError
 from sdfr.model import ROBOT_ID_RE
 
 DEFAULT_API = "127.0.0.1:8700"
-DEFAULT_DESCRIBE = "0.0.0.0:8701"
+DEFAULT_DESCRIBE = "iface:8701"
+#: The host of `describe` that means "the fleet interface's address, wherever it moves".
+IFACE_HOST = "iface"
 
 
 def default_state_dir() -> Path:
@@ -68,7 +70,7 @@ class Config:
                 f"fleet: must be 0-255 (it is the second octet of 10.<fleet>.x.y), got {self.fleet}"
             )
         split_hostport("api", self.api)
-        split_hostport("describe", self.describe)
+        describe_address(self.describe)
         if not 0.05 <= self.beacon_interval <= 3600:
             raise ConfigError(
                 f"beacon_interval: must be 0.05-3600 seconds, got {self.beacon_interval}"
@@ -175,13 +177,24 @@ def split_hostport(key: str, value: str) -> tuple[str, int]:
     return host, int(port_s)
 
 
-_WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+_WILDCARD_HOSTS = ("0.0.0.0", "::", "", IFACE_HOST)
+
+
+def describe_address(describe: str) -> tuple[str, int]:
+    """`describe` (HOST:PORT, HOST an address or `iface`) split; ConfigError if it is not."""
+    host, sep, port = describe.rpartition(":")
+    if sep and host == IFACE_HOST:
+        return IFACE_HOST, split_hostport("describe", f"0.0.0.0:{port}")[1]
+    try:
+        return split_hostport("describe", describe)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (or {IFACE_HOST}: the fleet interface's address)") from None
 
 
 def location_url(describe: str, address: str) -> str:
     """The LOCATION a robot announces: its description server (`describe`, HOST:PORT), on
-    `address` when the server listens on every address."""
-    host, port = split_hostport("describe", describe)
+    `address` when the server listens on the fleet interface's address or on every one."""
+    host, port = describe_address(describe)
     if host in _WILDCARD_HOSTS:
         host = address or "0.0.0.0"
     return f"http://{host}:{port}/description.json"
@@ -199,7 +212,8 @@ _HELP: dict[str, str] = {
     "api": f"HOST:PORT of the local REST API (default {DEFAULT_API}); it also listens on "
     "STATE_DIR/api.sock",
     "describe": f"HOST:PORT of the read-only description server other robots and SSDP clients "
-    f"fetch LOCATION from (default {DEFAULT_DESCRIBE})",
+    f"fetch LOCATION from; HOST {IFACE_HOST} is the fleet interface's address, followed when it "
+    f"changes (default {DEFAULT_DESCRIBE}); 0.0.0.0 listens on every address",
     "state_dir": "directory of the durable state: registrations, history map (default "
     "/var/lib/sdfr as root, else $XDG_STATE_HOME/sdfr)",
     "beacon_interval": "seconds between Alive beacons (default 10)",

@@ -522,6 +522,11 @@ class Core:
         self._dirty.clear()
         return views
 
+    def mark_unsaved(self, robot_ids: Iterable[str], removed: Iterable[str]) -> None:
+        """Views taken but not saved (the disk was full): give them back for the next save."""
+        self._dirty.update(r for r in robot_ids if r in self.peers)
+        self._removed.update(removed)
+
     def take_removed(self) -> list[str]:
         """Robots forgotten since the last call (the history map was full): unsave them."""
         removed = sorted(self._removed)

@@ -3,17 +3,21 @@
 Owners: the API layer writes local registrations (`local_services`, the local
 version); the discovery layer writes the history map (`peers`) and its status.
 Each reads what the other writes. WAL lets readers proceed while a writer
-commits, and with synchronous=NORMAL a commit survives a crash of the process
-(the page cache keeps it) without an fsync per request.
+commits. A durable connection (`Store(..., durable=True)`, the API layer's writer)
+commits with synchronous=FULL: a registration acknowledged is on disk and survives
+a power cut; the history map, rebuilt from the air in seconds, is written with
+synchronous=NORMAL (it survives a crash of the process, not a power cut).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
 import sqlite3
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,6 +27,10 @@ from sdfr.model import Service
 from sdfr.wire import MAX_BOOT_ID
 
 SCHEMA_VERSION = 1
+#: The API layer's datagram socket in the state dir, to which the discovery layer sends its
+#: status every second: a heartbeat that needs no disk, so a full state directory is not
+#: mistaken for a dead discovery layer.
+STATUS_SOCKET = "status.sock"
 #: Boot ids count seconds from 2020-01-01 UTC (BOOTID.UPNP.ORG holds 31 bits: until 2088).
 BOOT_EPOCH = 1577836800
 
@@ -90,6 +98,29 @@ class StoreError(SdfrError):
     """The state directory cannot be used."""
 
 
+class StateWriteError(StoreError):
+    """A write to the state directory failed: `reason` is full, read-only or error."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def write_error(where: Path, exc: BaseException) -> StateWriteError:
+    """A write failure, classified: a full disk, a read-only one, or something else."""
+    text = str(exc).lower()
+    code = getattr(exc, "errno", None)
+    if code == errno.ENOSPC or "full" in text or code == errno.EDQUOT:
+        return StateWriteError("full", f"the state directory {where} is full ({exc})")
+    if code == errno.EROFS or "readonly" in text or "read-only" in text:
+        return StateWriteError("read-only", f"the state directory {where} is read-only ({exc})")
+    return StateWriteError("error", f"cannot write the state directory {where}: {exc}")
+
+
+#: A write of local registrations: ("add", Service) or ("remove", service id).
+Op = tuple[str, "Service | str"]
+
+
 def _service_from_row(body: str) -> Service:
     obj = json.loads(body)
     return Service.from_json(obj)
@@ -102,7 +133,7 @@ def _dumps(obj: Any) -> str:
 class Store:
     """One connection to the state database; each process opens its own."""
 
-    def __init__(self, state_dir: Path) -> None:
+    def __init__(self, state_dir: Path, *, durable: bool = False) -> None:
         try:
             state_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -115,7 +146,7 @@ class Store:
                 self.path, timeout=10.0, isolation_level=None, check_same_thread=False
             )
             self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
             self._db.executescript(_SCHEMA)
         except sqlite3.DatabaseError as exc:
             raise StoreError(
@@ -178,28 +209,55 @@ class Store:
             rows = self._db.execute("SELECT body FROM local_services ORDER BY seq").fetchall()
         return version, [_service_from_row(r[0]) for r in rows]
 
+    def get_service(self, service_id: str) -> Service | None:
+        row = self._db.execute(
+            "SELECT body FROM local_services WHERE id = ?", (service_id,)
+        ).fetchone()
+        return None if row is None else _service_from_row(row[0])
+
+    def apply(self, ops: list[Op]) -> list[int | StoreError | None]:
+        """Several registration changes in one transaction (one fsync when durable): per
+        operation the new local version, None (removing what is not there) or the error
+        (adding an id that exists). A failed write raises StateWriteError for all."""
+        out: list[int | StoreError | None] = []
+        with self._writing(), self._tx():
+            for kind, arg in ops:
+                if kind == "add":
+                    assert isinstance(arg, Service)
+                    out.append(self._insert(arg))
+                else:
+                    assert isinstance(arg, str)
+                    out.append(self._delete(arg))
+        return out
+
+    def _insert(self, service: Service) -> int | StoreError:
+        seq = self._db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM local_services").fetchone()[0]
+        try:
+            self._db.execute(
+                "INSERT INTO local_services(id, seq, body) VALUES (?, ?, ?)",
+                (service.id, seq, _dumps(service.to_json())),
+            )
+        except sqlite3.IntegrityError:
+            return StoreError(f"service id {service.id!r} exists already")
+        return self._bump_version()
+
+    def _delete(self, service_id: str) -> int | None:
+        cur = self._db.execute("DELETE FROM local_services WHERE id = ?", (service_id,))
+        return None if cur.rowcount == 0 else self._bump_version()
+
     def add_service(self, service: Service) -> int:
         """Store a registration; returns the new local version."""
-        with self._tx():
-            seq = self._db.execute(
-                "SELECT COALESCE(MAX(seq), 0) + 1 FROM local_services"
-            ).fetchone()[0]
-            try:
-                self._db.execute(
-                    "INSERT INTO local_services(id, seq, body) VALUES (?, ?, ?)",
-                    (service.id, seq, _dumps(service.to_json())),
-                )
-            except sqlite3.IntegrityError:
-                raise StoreError(f"service id {service.id!r} exists already") from None
-            return self._bump_version()
+        result = self.apply([("add", service)])[0]
+        if isinstance(result, StoreError):
+            raise result
+        assert result is not None
+        return result
 
     def remove_service(self, service_id: str) -> int | None:
         """Remove a registration; returns the new local version, None if there was none."""
-        with self._tx():
-            cur = self._db.execute("DELETE FROM local_services WHERE id = ?", (service_id,))
-            if cur.rowcount == 0:
-                return None
-            return self._bump_version()
+        result = self.apply([("remove", service_id)])[0]
+        assert not isinstance(result, StoreError)
+        return result
 
     def _bump_version(self) -> int:
         version = self.local_version() + 1
@@ -229,7 +287,7 @@ class Store:
         ]
         if not rows:
             return
-        with self._tx():
+        with self._writing(), self._tx():
             self._db.executemany(
                 "INSERT OR REPLACE INTO peers(robot_id, address, location, boot_id, version, "
                 "digest, reachable, first_seen, last_seen, indicator, rtt_ms, pings, services) "
@@ -274,7 +332,7 @@ class Store:
         """Forget robots (the history map was full)."""
         ids = [(r,) for r in robot_ids]
         if ids:
-            with self._tx():
+            with self._writing(), self._tx():
                 self._db.executemany("DELETE FROM peers WHERE robot_id = ?", ids)
 
     def mark_all_unreachable(self) -> None:
@@ -291,8 +349,9 @@ class Store:
         """
         status = {**status, "heartbeat": time.time()}
         tmp = self.status_path.with_suffix(".tmp")
-        tmp.write_text(_dumps(status))
-        tmp.replace(self.status_path)
+        with self._writing():
+            tmp.write_text(_dumps(status))
+            tmp.replace(self.status_path)
 
     def read_status(self) -> dict[str, Any]:
         try:
@@ -303,6 +362,14 @@ class Store:
 
     # -- helpers ---------------------------------------------------------------------------
 
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Failed writes raise StateWriteError, saying whether the disk is full or read-only."""
+        try:
+            yield
+        except (sqlite3.DatabaseError, OSError) as exc:
+            raise write_error(self.path.parent, exc) from None
+
     class _Tx:
         def __init__(self, db: sqlite3.Connection, immediate: bool) -> None:
             self._db = db
@@ -312,7 +379,18 @@ class Store:
             self._db.execute(self._begin)
 
         def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-            self._db.execute("COMMIT" if exc_type is None else "ROLLBACK")
+            if exc_type is None:
+                try:
+                    self._db.execute("COMMIT")
+                    return
+                except sqlite3.DatabaseError:
+                    # (A full disk can fail the commit itself: end the transaction, or every
+                    # later one on this connection fails too, even once there is room.)
+                    with contextlib.suppress(sqlite3.DatabaseError):
+                        self._db.execute("ROLLBACK")
+                    raise
+            with contextlib.suppress(sqlite3.DatabaseError):
+                self._db.execute("ROLLBACK")
 
     def _tx(self, immediate: bool = True) -> Store._Tx:
         return Store._Tx(self._db, immediate)

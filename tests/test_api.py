@@ -27,7 +27,6 @@ from sdfr.api import (
     MAX_BODY,
     Runner,
     create_app,
-    create_describe_app,
     notify_discovery,
     openapi_document,
     pid_alive,
@@ -155,7 +154,7 @@ BIG = {f"k{i}": "v" * 250 for i in range(10)}
         ({"name": "x", "type": "t", "attributes": [1, 2]}, 422, "attributes"),
         ({"name": "x", "type": "t", "attributes": {"a": {"b": 1}}}, 422, "attributes.a"),
         ({"name": "x", "type": "t", "colour": "red"}, 422, "colour"),
-        ({"name": "x", "type": "t", "id": "mine"}, 422, "id"),
+        ({"name": "x", "type": "t", "id": "has space"}, 422, "id"),
         ({"name": "x", "type": "t", "url": 5}, 422, "url"),
         ({"name": "x", "type": "t", "attributes": BIG}, 422, "service"),
         ([{"name": "x", "type": "t"}], 422, "body"),
@@ -383,6 +382,8 @@ async def test_health_follows_the_discovery_heartbeat(
             "discovery": "down",
             "discovery_heartbeat_age": None,
             "discovery_error": None,
+            "state": "ok",
+            "state_error": None,
             "auth": None,
             "warnings": [],
         }
@@ -517,35 +518,6 @@ async def test_openapi_documents_exactly_the_routes(cfg: Config, store: Store) -
 # -- the description server, discovery notification --------------------------------------------
 
 
-@aio
-async def test_describe_app_is_read_only_and_current(
-    cfg: Config, store: Store, discovery_store: Store
-) -> None:
-    discovery_store.write_status(status())
-    async with (
-        serve(create_app(cfg, store)) as api,
-        serve(create_describe_app(cfg, store)) as describe,
-    ):
-        r = await describe.get("/description.json")
-        assert await r.json() == {
-            "robot_id": "r1",
-            "fleet": 7,
-            "address": "10.7.3.4",
-            "boot_id": 5,
-            "version": 0,
-            "services": [],
-        }
-        # A publish through the API (same connection, so no data_version change) shows at once.
-        r = await api.post("/services", json={"name": "arm", "type": "manipulator"})
-        sid = (await r.json())["id"]
-        for path in ("/description.json", "/"):
-            r = await describe.get(path)
-            desc = await r.json()
-            assert desc["version"] == 1 and [s["id"] for s in desc["services"]] == [sid]
-        r = await describe.post("/description.json", json={})
-        assert r.status == 405 and "error" in await r.json()
-        r = await describe.get("/services")
-        assert r.status == 404 and "error" in await r.json()
 
 
 def test_notify_discovery_sends_a_datagram(tmp_path: Path) -> None:

@@ -11,6 +11,7 @@ import contextlib
 import errno
 import logging
 import os
+import resource
 import signal
 import socket
 import sys
@@ -18,11 +19,11 @@ from pathlib import Path
 
 from aiohttp import web
 
-from sdfr.api import Runner, create_app, create_describe_app
+from sdfr.api import STATE, ApiState, Runner, create_app
 from sdfr.config import Config, from_args, split_hostport
 from sdfr.daemon import logs
 from sdfr.errors import ConfigError
-from sdfr.store import Store, StoreError
+from sdfr.store import STATUS_SOCKET, Store, StoreError
 
 log = logging.getLogger("sdfr.apiserver")
 
@@ -78,40 +79,82 @@ async def _start_tcp(runner: web.AppRunner, flag: str, value: str) -> None:
 async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
     """Serve until `stop` is set."""
     access_log = logging.getLogger("aiohttp.access") if cfg.log_level == "debug" else None
-    api_runner = Runner(
-        create_app(cfg, store), access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT
-    )
-    describe_runner = Runner(
-        create_describe_app(cfg, store), access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT
-    )
+    app = create_app(cfg, store)
+    runner = Runner(app, access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT)
     sock_path = api_socket_path(cfg.state_dir)
+    status = _StatusListener(cfg.state_dir / STATUS_SOCKET, app[STATE])
     sock_bound = False
     try:
-        await api_runner.setup()
-        await describe_runner.setup()
-        await _start_tcp(api_runner, "api", cfg.api)
+        await runner.setup()
+        await _start_tcp(runner, "api", cfg.api)
         _clear_stale_socket(sock_path)
         try:
-            await web.UnixSite(api_runner, str(sock_path)).start()
+            await web.UnixSite(runner, str(sock_path)).start()
         except OSError as exc:
             raise StartError(f"{sock_path}: cannot listen: {exc.strerror or exc}") from None
         sock_bound = True
         os.chmod(sock_path, 0o660)
-        await _start_tcp(describe_runner, "describe", cfg.describe)
-        log.info(
-            "serving the API on http://%s and %s, the description on http://%s/description.json",
-            cfg.api,
-            sock_path,
-            cfg.describe,
-        )
+        status.start()
+        log.info("serving the API on http://%s and %s", cfg.api, sock_path)
         await stop.wait()
         log.info("stopping")
     finally:
-        await describe_runner.cleanup()
-        await api_runner.cleanup()
+        status.stop()
+        await runner.cleanup()
         if sock_bound:
             with contextlib.suppress(OSError):
                 sock_path.unlink()
+
+
+class _StatusListener:
+    """Receives the discovery layer's status datagrams (its heartbeat, needing no disk)."""
+
+    def __init__(self, path: Path, state: ApiState) -> None:
+        self.path = path
+        self.state = state
+        self.sock: socket.socket | None = None
+
+    def start(self) -> None:
+        self.path.unlink(missing_ok=True)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            sock.bind(str(self.path))
+            os.chmod(self.path, 0o660)
+        except OSError as exc:  # (a full disk: the status file is read instead)
+            log.warning("cannot listen for the discovery layer's status on %s: %s", self.path, exc)
+            sock.close()
+            return
+        sock.setblocking(False)
+        asyncio.get_running_loop().add_reader(sock.fileno(), self._read)
+        self.sock = sock
+
+    def _read(self) -> None:
+        assert self.sock is not None
+        while True:
+            try:
+                data = self.sock.recv(1 << 20)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            self.state.take_status(data)
+
+    def stop(self) -> None:
+        if self.sock is not None:
+            asyncio.get_running_loop().remove_reader(self.sock.fileno())
+            self.sock.close()
+            self.sock = None
+            self.path.unlink(missing_ok=True)
+
+
+def raise_fd_limit() -> None:
+    """Use the hard limit of open files, not the soft one (1,024 on many systems): the local
+    API must not run out of descriptors while programs hold connections to it."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = hard if hard != resource.RLIM_INFINITY else 65536
+    if soft < want:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
 
 
 async def _run(cfg: Config, store: Store) -> None:
@@ -137,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         return _fail(str(exc))
     _setup_logging(cfg.log_level)
+    raise_fd_limit()
     try:
         store = Store(cfg.state_dir)
     except StoreError as exc:

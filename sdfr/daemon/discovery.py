@@ -8,6 +8,8 @@ the history map to the shared store and reads local registrations from it.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import logging
 import os
 import random
@@ -22,12 +24,13 @@ from pathlib import Path
 
 from sdfr import keystore, netif
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
-from sdfr.config import Config, from_args, location_url
+from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
 from sdfr.daemon import logs
 from sdfr.daemon.arp import ArpSocket, Netlink
+from sdfr.daemon.describe import DescribeServer
 from sdfr.errors import SdfrError
 from sdfr.protocol import MESSAGE_TYPES, Core, CoreConfig, PeerView
-from sdfr.store import PeerRecord, Store
+from sdfr.store import STATUS_SOCKET, PeerRecord, StateWriteError, Store
 
 log = logging.getLogger("sdfrd.discovery")
 
@@ -113,6 +116,14 @@ class DiscoveryLayer:
             self.addressing = Addressing(AddrConfig(cfg.fleet, mac), random.Random())
             self.arp = ArpSocket(self.iface, bytes.fromhex(mac.replace(":", "")))
             self.netlink = Netlink(self.iface)
+        self.describe = DescribeServer(self._description)
+        self._describe_task: asyncio.Task[None] | None = None
+        # The status goes to the API layer over a datagram socket every second: a heartbeat
+        # that needs no disk (a full state dir must not look like a dead discovery layer).
+        self._status_sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._status_sock.setblocking(False)
+        self._state_problem: tuple[float, str, str] | None = None
+        self._description_cache: tuple[tuple[object, ...], bytes] | None = None
         self._addr_timer: asyncio.TimerHandle | None = None
         self._arrivals = 0
         self._bound = asyncio.Event()
@@ -192,6 +203,7 @@ class DiscoveryLayer:
         self.loop.add_reader(self.sock.fileno(), self._on_readable)
         self.loop.add_reader(self.control.fileno(), self._on_control)
         self._check_address()
+        await self._serve_description(first=True)
         self.core.start(time.monotonic())
         self._pump()
         self._write_status()
@@ -211,6 +223,7 @@ class DiscoveryLayer:
             self._flush()
             self.loop.remove_reader(self.sock.fileno())
             self.loop.remove_reader(self.control.fileno())
+            self.describe.close()
             self.sock.close()
             self.control.close()
             (self.cfg.state_dir / CONTROL_NAME).unlink(missing_ok=True)
@@ -293,6 +306,8 @@ class DiscoveryLayer:
             self._guard("reloading the services", self._reload_services)
             self._guard("reloading the keyring", self._reload_keyring)
             self._guard("writing the status", self._write_status)
+            if self.core.has_dirty:
+                self._guard("saving the history map", self._save)
 
     def _guard(self, what: str, duty: Callable[[], None]) -> None:
         """Run a callback's work; a failure is logged and counted (for /health), and the
@@ -365,7 +380,7 @@ class DiscoveryLayer:
             except OSError as exc:
                 self.core.counters.rejects["send-error"] += 1
                 log.debug("sendto %s: %s", dst or group, exc)
-        if self.core.has_dirty and not self._flush_pending:
+        if self.core.has_dirty and not self._flush_pending and self._state_problem is None:
             self._flush_pending = True
             self.loop.call_soon(self._flush)
         deadline = self.core.next_deadline()
@@ -381,8 +396,17 @@ class DiscoveryLayer:
         self._guard("saving the history map", self._save)
 
     def _save(self) -> None:
-        self.store.delete_peers(self.core.take_removed())
+        removed = self.core.take_removed()
         views = self.core.take_dirty()
+        try:
+            self._save_views(removed, views)
+        except StateWriteError as exc:
+            # Kept to be saved again: the next periodic tick tries (when there is room).
+            self.core.mark_unsaved([v.robot_id for v in views], removed)
+            self._state_failed(exc)
+
+    def _save_views(self, removed: list[str], views: list[PeerView]) -> None:
+        self.store.delete_peers(removed)
         if not views:
             return
         off = self.clock_offset
@@ -443,6 +467,42 @@ class DiscoveryLayer:
             if address:
                 self.core.set_location(self._location(), time.monotonic())
                 self._pump()
+            if self.core.started:
+                self._describe_task = self.loop.create_task(self._serve_description())
+
+    async def _serve_description(self, *, first: bool = False) -> None:
+        """Serve the description where `describe` says: on the fleet interface's address
+        (followed when it changes) unless another address is configured."""
+        host, port = describe_address(self.cfg.describe)
+        if host == IFACE_HOST:
+            if not self.address:
+                self.describe.close()
+                return
+            host = self.address
+        try:
+            await self.describe.listen(host, port)
+        except OSError as exc:
+            message = f"describe: cannot listen on {host}:{port}: {exc.strerror or exc}"
+            if first:
+                raise SdfrError(message) from None
+            log.error("%s", message)
+
+    def _description(self) -> bytes:
+        """The description's JSON, made again only when what it shows changed."""
+        core = self.core
+        key = (core.version, self.address, self.boot_id)
+        if self._description_cache is None or self._description_cache[0] != key:
+            body = {
+                "robot_id": self.cfg.robot_id,
+                "fleet": self.cfg.fleet,
+                "address": self.address,
+                "boot_id": self.boot_id,
+                "version": core.version,
+                "services": [s.to_json() for s in core.services],
+            }
+            data = json.dumps(body, ensure_ascii=False, separators=(",", ":")).encode()
+            self._description_cache = (key, data)
+        return self._description_cache[1]
 
     def _log_conflict(self) -> None:
         """Say so when another sender claims our robot id: at once, then once a minute."""
@@ -464,36 +524,61 @@ class DiscoveryLayer:
 
     def _write_status(self) -> None:
         self._log_conflict()
+        status = self._status()
+        with contextlib.suppress(OSError):  # no API layer listening: it reads the file later
+            self._status_sock.sendto(
+                json.dumps(status, separators=(",", ":")).encode(),
+                str(self.cfg.state_dir / STATUS_SOCKET),
+            )
+        try:
+            self.store.write_status(status)
+        except StateWriteError as exc:
+            self._state_failed(exc)
+        else:
+            self._state_problem = None
+
+    def _state_failed(self, exc: StateWriteError) -> None:
+        """A write of the state dir failed (full, read-only): say so in the status, log it
+        once a minute (the log filter), and go on discovering."""
+        if self._state_problem is None or self._state_problem[1] != exc.reason:
+            log.error("%s", exc)
+        self._state_problem = (time.time(), exc.reason, str(exc))
+
+    def _status(self) -> dict[str, object]:
         c = self.core.counters
         reachable = sum(1 for p in self.core.peers.values() if p.reachable)
-        self.store.write_status(
-            {
-                "pid": os.getpid(),
-                "robot_id": self.cfg.robot_id,
-                "fleet": self.cfg.fleet,
-                "iface": self.iface,
-                "address": self.address,
-                "boot_id": self.boot_id,
-                "version": self.core.version,
-                "started": self.started,
-                "location": self.core.location,
-                "peers_reachable": reachable,
-                "peers_known": len(self.core.peers),
-                "addressing": self._addressing_status(),
-                "counters": {
-                    "datagrams_in": {k: c.datagrams_in[k] for k in MESSAGE_TYPES},
-                    "datagrams_out": {k: c.datagrams_out[k] for k in MESSAGE_TYPES},
-                    "bytes_in": c.bytes_in,
-                    "bytes_out": c.bytes_out,
-                    "rejects": dict(c.rejects),
-                    "challenges": c.challenges,
-                    "challenges_limited": c.challenges_limited,
-                },
-                "auth": self._auth_status(),
-                "robot_id_conflict": self._conflict_status(),
-                "errors": self._error_status(),
-            }
-        )
+        problem = self._state_problem
+        return {
+            "heartbeat": time.time(),
+            "pid": os.getpid(),
+            "robot_id": self.cfg.robot_id,
+            "fleet": self.cfg.fleet,
+            "iface": self.iface,
+            "address": self.address,
+            "boot_id": self.boot_id,
+            "version": self.core.version,
+            "started": self.started,
+            "location": self.core.location,
+            "peers_reachable": reachable,
+            "peers_known": len(self.core.peers),
+            "addressing": self._addressing_status(),
+            "counters": {
+                "datagrams_in": {k: c.datagrams_in[k] for k in MESSAGE_TYPES},
+                "datagrams_out": {k: c.datagrams_out[k] for k in MESSAGE_TYPES},
+                "bytes_in": c.bytes_in,
+                "bytes_out": c.bytes_out,
+                "rejects": dict(c.rejects),
+                "challenges": c.challenges,
+                "challenges_limited": c.challenges_limited,
+            },
+            "auth": self._auth_status(),
+            "describe": self.describe.status(),
+            "robot_id_conflict": self._conflict_status(),
+            "errors": self._error_status(),
+            "state": {"writable": True}
+            if problem is None
+            else {"writable": False, "reason": problem[1], "error": problem[2]},
+        }
 
     def _auth_status(self) -> dict[str, object]:
         ring = self.core.keyring
