@@ -518,8 +518,6 @@ async def test_openapi_documents_exactly_the_routes(cfg: Config, store: Store) -
 # -- the description server, discovery notification --------------------------------------------
 
 
-
-
 def test_notify_discovery_sends_a_datagram(tmp_path: Path) -> None:
     notify_discovery(tmp_path)  # nobody listening: silently nothing
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as listener:
