@@ -40,12 +40,26 @@ class Worker:
     """A minimal HTTP/1.1 keep-alive client, so the generator's own cost stays small."""
 
     def __init__(self, host: str, port: int) -> None:
-        self.sock = socket.create_connection((host, port), timeout=10)
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.where = (host, port)
+        self.sock = self._connect()
         self.host = f"{host}:{port}".encode()
         self.buf = b""
 
+    def _connect(self) -> socket.socket:
+        sock = socket.create_connection(self.where, timeout=10)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
+
     def call(self, method: str, path: str, body: bytes | None = None) -> tuple[int, bytes, float]:
+        try:
+            return self._call(method, path, body)
+        except (ConnectionError, BrokenPipeError):
+            # sdfrd closes a connection idle for a while, as a server should: open another.
+            self.sock.close()
+            self.sock, self.buf = self._connect(), b""
+            return self._call(method, path, body)
+
+    def _call(self, method: str, path: str, body: bytes | None = None) -> tuple[int, bytes, float]:
         head = b"%s %s HTTP/1.1\r\nHost: %s\r\n" % (method.encode(), path.encode(), self.host)
         if body is not None:
             head += b"Content-Type: application/json\r\nContent-Length: %d\r\n" % len(body)

@@ -3,10 +3,11 @@
 Owners: the API layer writes local registrations (`local_services`, the local
 version); the discovery layer writes the history map (`peers`) and its status.
 Each reads what the other writes. WAL lets readers proceed while a writer
-commits. A durable connection (`Store(..., durable=True)`, the API layer's writer)
-commits with synchronous=FULL: a registration acknowledged is on disk and survives
-a power cut; the history map, rebuilt from the air in seconds, is written with
-synchronous=NORMAL (it survives a crash of the process, not a power cut).
+commits. Commits run with synchronous=NORMAL (they survive a crash of the process);
+the API layer's writer calls `sync()` after committing registrations and before
+answering, so an acknowledged registration is on disk and survives a power cut
+(the fsync runs in a worker thread, so the event loop never waits on the disk).
+The history map, rebuilt from the air in seconds, is not synced.
 """
 
 from __future__ import annotations
@@ -133,7 +134,7 @@ def _dumps(obj: Any) -> str:
 class Store:
     """One connection to the state database; each process opens its own."""
 
-    def __init__(self, state_dir: Path, *, durable: bool = False) -> None:
+    def __init__(self, state_dir: Path) -> None:
         try:
             state_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -146,7 +147,7 @@ class Store:
                 self.path, timeout=10.0, isolation_level=None, check_same_thread=False
             )
             self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+            self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
         except sqlite3.DatabaseError as exc:
             raise StoreError(
@@ -156,6 +157,8 @@ class Store:
             "INSERT OR IGNORE INTO meta(key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),)
         )
         self.status_path = state_dir / "discovery-status.json"
+        self.wal_path = self.path.with_name(self.path.name + "-wal")
+        self._dir_synced = False
         # Parsed service sets by their stored JSON text: a reload after an indicator update
         # parses nothing again. (Not by version: a peer is saved with no services while its
         # announced set is still being fetched, then again with them, under one version.)
@@ -208,6 +211,23 @@ class Store:
             version = self.local_version()
             rows = self._db.execute("SELECT body FROM local_services ORDER BY seq").fetchall()
         return version, [_service_from_row(r[0]) for r in rows]
+
+    def sync(self) -> None:
+        """Make what was committed so far durable: fsync the write-ahead log (and, the first
+        time, the directory holding it). A failure raises StateWriteError."""
+        with self._writing():
+            fd = os.open(self.wal_path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            if not self._dir_synced:
+                dfd = os.open(self.path.parent, os.O_RDONLY)
+                try:
+                    os.fsync(dfd)
+                finally:
+                    os.close(dfd)
+                self._dir_synced = True
 
     def get_service(self, service_id: str) -> Service | None:
         row = self._db.execute(

@@ -5,11 +5,13 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import errno
 import functools
 import json
 import os
 import re
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
@@ -25,6 +27,7 @@ from sdfr import auth, keystore, wire
 from sdfr.api import (
     HEARTBEAT_STALE,
     MAX_BODY,
+    STATE,
     Runner,
     create_app,
     notify_discovery,
@@ -34,7 +37,7 @@ from sdfr.api import (
 from sdfr.auth import Keyring
 from sdfr.config import Config, location_max_len
 from sdfr.model import Service
-from sdfr.store import PeerRecord, Store
+from sdfr.store import PeerRecord, Store, write_error
 
 
 def aio(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:
@@ -780,3 +783,102 @@ def free_port() -> int:
         s.bind(("127.0.0.1", 0))
         port: int = s.getsockname()[1]
         return port
+
+
+# -- publishes: durable, idempotent, grouped ------------------------------------------------------
+
+
+@aio
+async def test_a_publish_retried_under_its_id_is_stored_once(cfg: Config, store: Store) -> None:
+    body = {"id": "cam-1", "name": "cam", "type": "sensor.camera", "attributes": {"fps": 30}}
+    async with serve(create_app(cfg, store)) as c:
+        r = await c.post("/services", json=body)
+        assert r.status == 201 and (await r.json())["id"] == "cam-1"
+        first = await r.json()
+        r = await c.post("/services", json=body)  # the client never saw the first answer
+        assert r.status == 200 and await r.json() == first
+        r = await c.post("/services", json={**body, "name": "another camera"})
+        assert r.status == 409 and (await r.json())["field"] == "id"
+        # Two copies in flight at once: one stores it, the other finds it stored.
+        body2 = {**body, "id": "cam-2"}
+        answers = await asyncio.gather(*(c.post("/services", json=body2) for _ in range(2)))
+        assert sorted(a.status for a in answers) == [200, 201]
+    version, services = store.local_state()
+    assert [s.id for s in services] == ["cam-1", "cam-2"] and version == 2
+
+
+@pytest.mark.parametrize("disk", ["fast", "slow"])
+@aio
+async def test_a_burst_of_publishes_is_all_stored(cfg: Config, store: Store, disk: str) -> None:
+    """On a fast disk each commit's fsync runs inline; on a slow one (here: told its fsyncs
+    take 50 ms) in a thread, and the requests arriving meanwhile share the next commit."""
+    app = create_app(cfg, store)
+    writer = app[STATE].writer
+    if disk == "slow":
+        writer.fsync_avg = 0.05
+    async with serve(app) as c:
+        answers = await asyncio.gather(
+            *(c.post("/services", json={"name": f"s{i}", "type": "t"}) for i in range(60))
+        )
+        assert all(a.status == 201 for a in answers)
+        versions = sorted([(await a.json())["version"] for a in answers])
+        assert versions == list(range(1, 61))  # each its own version, none lost
+        if disk == "slow":
+            assert writer.commits < 60
+    assert len(store.local_state()[1]) == 60
+
+
+@aio
+async def test_a_half_sent_request_is_dropped(cfg: Config, store: Store) -> None:
+    runner = Runner(create_app(cfg, store), keepalive_timeout=0.5)
+    await runner.setup()
+    port = free_port()
+    await web.TCPSite(runner, "127.0.0.1", port).start()
+
+    def slowloris() -> float:
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+            sock.sendall(b"GET /neighbors HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+            t0 = time.monotonic()
+            while sock.recv(1024):  # the server closes it
+                pass
+            return time.monotonic() - t0
+
+    try:
+        took = await asyncio.to_thread(slowloris)
+        assert took < 3.0
+    finally:
+        await runner.cleanup()
+
+
+@aio
+async def test_a_read_only_state_dir_is_a_503_naming_it(cfg: Config, store: Store) -> None:
+    app = create_app(cfg, store)
+    async with serve(app) as c:
+        assert (await c.post("/services", json={"name": "a", "type": "t"})).status == 201
+        # SQLite's own read-only answer, as a read-only filesystem gives it.
+        writer = app[STATE].writer
+        assert writer._store is not None
+        writer._store._db.execute("PRAGMA query_only=ON")
+        r = await c.post("/services", json={"name": "b", "type": "t"})
+        answer = await r.json()
+        assert r.status == 503 and answer["field"] == "state_dir"
+        assert "read-only" in answer["error"] and str(cfg.state_dir) in answer["error"]
+        health = await (await c.get("/health")).json()
+        assert health["state"] == "read-only" and str(cfg.state_dir) in health["state_error"]
+        writer._store._db.execute("PRAGMA query_only=OFF")
+        assert (await c.post("/services", json={"name": "b", "type": "t"})).status == 201
+        assert (await (await c.get("/health")).json())["state"] == "ok"
+
+
+def test_write_failures_are_told_apart() -> None:
+    where = Path("/var/lib/sdfr")
+    full = write_error(where, OSError(errno.ENOSPC, "No space left on device"))
+    assert full.reason == "full" and "is full" in str(full) and str(where) in str(full)
+    assert write_error(where, sqlite3.OperationalError("database or disk is full")).reason == "full"
+    ro = write_error(where, OSError(errno.EROFS, "Read-only file system"))
+    assert ro.reason == "read-only"
+    assert (
+        write_error(where, sqlite3.OperationalError("attempt to write a readonly database")).reason
+        == "read-only"
+    )
+    assert write_error(where, sqlite3.OperationalError("disk I/O error")).reason == "error"

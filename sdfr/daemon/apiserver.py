@@ -181,6 +181,9 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(str(exc))
     _setup_logging(cfg.log_level)
     raise_fd_limit()
+    # The registrations' writer thread takes the GIL back after each fsync; with the default
+    # 5 ms switch interval a busy event loop makes it wait that long, each time.
+    sys.setswitchinterval(0.0005)
     try:
         store = Store(cfg.state_dir)
     except StoreError as exc:
