@@ -1050,6 +1050,11 @@ def _answer(text: str, schema: str) -> dict[str, Any]:
 
 _ERROR = _answer("An error; `field` names the offending field or parameter.", "Error")
 _ERRORS_400 = {"400": _ERROR, "422": _ERROR}
+_DOORS = {
+    **_ERROR,
+    "description": "A web page's cross-site request (Origin, Sec-Fetch-Site) or a Host that "
+    "is not one of this API's names (see api_allowed_origins, api_allowed_hosts)",
+}
 
 
 def openapi_document() -> dict[str, Any]:
@@ -1113,9 +1118,17 @@ def openapi_document() -> dict[str, Any]:
             "type": "object",
             "required": ["name", "type"],
             "additionalProperties": False,
-            "properties": service_fields,
-            "description": "A registration. The robot assigns the id; one service must fit "
-            "in one datagram.",
+            "properties": {
+                "id": {
+                    "type": "string",
+                    "pattern": "^[A-Za-z0-9._-]{1,64}$",
+                    "description": "Chosen by the client to make the publish idempotent: the "
+                    "same service again is a 200, another one under this id a 409. Left out, "
+                    "the robot picks one.",
+                },
+                **service_fields,
+            },
+            "description": "A registration; one service must fit in one datagram.",
         },
         "Service": {
             "type": "object",
@@ -1270,17 +1283,20 @@ def openapi_document() -> dict[str, Any]:
                 "requestBody": {"required": True, "content": _json_content(_ref("ServiceInput"))},
                 "responses": {
                     "201": {
-                        **_answer("Published", "Published"),
+                        **_answer("Published, on disk", "Published"),
                         "headers": {
                             "Location": {"schema": {"type": "string"}, "description": "Its URL"}
                         },
                     },
+                    "200": _answer("Published already under this id (a retry)", "Published"),
                     **_ERRORS_400,
+                    "409": {**_ERROR, "description": "The id is another service's"},
                     "413": _ERROR,
+                    "503": {**_ERROR, "description": "The state directory is read-only"},
                     "507": {
                         **_ERROR,
-                        "description": "The robot's services would need more than the 255 "
-                        "Update parts one announcement can carry",
+                        "description": "The state directory is full, or the robot's services "
+                        "would need more than the 255 Update parts one announcement can carry",
                     },
                 },
             },
@@ -1449,8 +1465,12 @@ def openapi_document() -> dict[str, Any]:
     }
     for ops in paths.values():
         for op in ops.values():
+            op["responses"].setdefault("403", _DOORS)
             op["responses"].setdefault("405", _ERROR)
             op["responses"].setdefault("500", _ERROR)
+            if "requestBody" in op:
+                op["responses"].setdefault("408", _ERROR)
+                op["responses"].setdefault("415", {**_ERROR, "description": "Not a JSON body"})
     return {
         "openapi": "3.1.0",
         "info": {

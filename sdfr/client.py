@@ -17,7 +17,7 @@ import json
 import secrets
 import socket
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -123,8 +123,11 @@ class Client:
         *,
         unix_socket: str | Path | None = None,
         timeout: float = 5.0,
+        retry_delays: Sequence[float] = RETRY_DELAYS,
     ) -> None:
         self.timeout = timeout
+        #: Pauses before sending a publish again when sdfrd could not be reached.
+        self.retry_delays = tuple(retry_delays)
         self._conn: http.client.HTTPConnection | None = None
         if unix_socket is not None:
             self._unix: str | None = str(unix_socket)
@@ -249,7 +252,7 @@ class Client:
         twice.
         """
         body = service_body(name, type, url, attributes, service_id or new_service_id())
-        for delay in (*RETRY_DELAYS, None):
+        for delay in (*self.retry_delays, None):
             try:
                 answer: JsonObject = self.request("POST", "/services", body)
                 return answer

@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -435,3 +436,33 @@ def test_cli_keys_generate_and_manage_a_running_daemon(
     assert keystore.load_keyring(layer.state_dir) == Keyring.of(
         [keystore.read_key_file(k2)], mode="enforce"
     )
+
+
+def test_a_publish_whose_answer_was_lost_is_sent_again_and_stored_once(
+    layer: ApiLayer, tmp_path: Path
+) -> None:
+    with Client(layer.api) as client:
+        sid = client.publish("lidar", "sensor.lidar")
+        assert [s["id"] for s in client.services()] == [sid]  # the client chose the id
+        # The same publish again (its answer lost, sdfrd restarted meanwhile): stored once.
+        layer.kill()
+        layer.start()
+        again = client.publish_service("lidar", "sensor.lidar", service_id=sid)
+        assert again["id"] == sid and len(client.services()) == 1
+        with pytest.raises(ApiError) as err:
+            client.publish("another", "sensor.lidar", service_id=sid)
+        assert err.value.status == 409 and err.value.field == "id"
+
+
+def test_a_publish_waits_a_moment_for_sdfrd(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """sdfrd is not answering when the publish starts (restarting): the client tries again."""
+    api = ApiLayer(tmp_path_factory.mktemp("late"))
+    started = threading.Timer(0.05, api.start)
+    with Client(unix_socket=api.socket, timeout=2.0, retry_delays=(0.5, 1, 2, 4, 8)) as client:
+        started.start()
+        try:
+            sid = client.publish("arm", "manipulator")
+            assert [s["id"] for s in client.services()] == [sid]
+        finally:
+            started.join()
+            api.stop()
