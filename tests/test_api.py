@@ -22,6 +22,8 @@ from typing import Any
 import pytest
 from aiohttp import ClientSession, UnixConnector, web
 from aiohttp.test_utils import TestClient, TestServer
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from sdfr import auth, keystore, wire
 from sdfr.api import (
@@ -882,3 +884,45 @@ def test_write_failures_are_told_apart() -> None:
         == "read-only"
     )
     assert write_error(where, sqlite3.OperationalError("disk I/O error")).reason == "error"
+
+
+JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=40),
+    lambda inner: (
+        st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=12), inner, max_size=5)
+    ),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
+@given(
+    body=JSON
+    | st.dictionaries(
+        st.sampled_from(["id", "name", "type", "url", "attributes", "x"]), JSON, max_size=6
+    ),
+    query=st.dictionaries(st.text(min_size=1, max_size=12), st.text(max_size=20), max_size=4),
+)
+def test_no_input_makes_a_500(
+    tmp_path_factory: pytest.TempPathFactory, body: Any, query: dict[str, str]
+) -> None:
+    state_dir = tmp_path_factory.mktemp("fuzz")
+
+    async def check() -> None:
+        store = Store(state_dir)
+        try:
+            async with serve(create_app(Config(state_dir=state_dir, robot_id="r1"), store)) as c:
+                for method, path, kw in (
+                    ("POST", "/services", {"json": body}),
+                    ("GET", "/neighbors/search", {"params": query}),
+                    ("GET", "/neighbors", {"params": query}),
+                    ("DELETE", f"/services/{str(body)[:30]}", {}),
+                ):
+                    r = await c.request(method, path, **kw)
+                    assert r.status < 500, (method, path, r.status, await r.text())
+                    answer = await r.json() if r.status != 204 else {}
+                    assert r.status < 300 or set(answer) == {"error", "field"}
+        finally:
+            store.close()
+
+    asyncio.run(check())
