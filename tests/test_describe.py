@@ -10,21 +10,9 @@ from collections.abc import Callable, Coroutine
 from typing import Any
 
 from sdfr.daemon.describe import DescribeServer
-from tests.test_api import aio, free_port
+from tests.test_api import aio, free_port, raw_exchange
 
 BODY = json.dumps({"robot_id": "r1", "services": []}).encode()
-
-
-def exchange(port: int, request: bytes) -> tuple[int, dict[str, str], bytes]:
-    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
-        sock.sendall(request)
-        data = b""
-        while chunk := sock.recv(65536):
-            data += chunk
-    head, _, body = data.partition(b"\r\n\r\n")
-    lines = head.decode().split("\r\n")
-    headers = {k.lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
-    return int(lines[0].split()[1]), headers, body
 
 
 async def serving(
@@ -43,7 +31,7 @@ async def serving(
 async def test_the_description_and_every_error_are_json() -> None:
     async def test(server: DescribeServer, port: int) -> None:
         def get(request: bytes) -> tuple[int, dict[str, str], bytes]:
-            return exchange(port, request)
+            return raw_exchange(port, request)
 
         for path in (b"/description.json", b"/", b"/description.json?x=1"):
             status, headers, body = await asyncio.to_thread(
