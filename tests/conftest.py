@@ -35,6 +35,7 @@ ROOT_SKIP_REASON = "needs root and network namespaces (CI runs as root)"
 
 _baseline_ns: set[str] = set()
 _baseline_manifests: set[str] = set()
+_baseline_host = False
 _attributed: dict[str, str] = {}  # leftover (ns name or "pid N") -> first test after which seen
 _leaks: list[str] = []  # filled at session finish, printed in the summary
 
@@ -104,9 +105,10 @@ def _sdfr_namespaces() -> set[str]:
 
 
 def _manifests() -> set[str]:
-    """netlab labs still recorded as up (a lab that was not taken down)."""
+    """netlab labs still recorded as up (a lab that was not taken down); not the host-wide
+    bookkeeping (`.host.json`), which is no lab's."""
     try:
-        return {p.name for p in NETLAB_MANIFESTS.glob("*.json")}
+        return {p.name for p in NETLAB_MANIFESTS.glob("*.json") if not p.name.startswith(".")}
     except OSError:
         return set()
 
@@ -155,8 +157,10 @@ def _children() -> dict[int, str]:
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
+    global _baseline_host
     _baseline_ns.update(_sdfr_namespaces())
     _baseline_manifests.update(_manifests())
+    _baseline_host = (NETLAB_MANIFESTS / ".host.json").exists()
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -190,12 +194,18 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         leaks.append(f"network namespace {ns} left behind, seen after {where}")
         with contextlib.suppress(OSError):
             netns.remove(ns)
-    for manifest in sorted(_manifests() - _baseline_manifests):
+    left = _manifests()
+    for manifest in sorted(left - _baseline_manifests):
         if _foreign(f"{NETLAB_PREFIX}{manifest.removesuffix('.json')}-air"):
             continue
         leaks.append(
             f"netlab lab manifest {NETLAB_MANIFESTS / manifest} left behind (lab not down)"
         )
+    # The raised ARP limits are put back by the last lab to go down: their bookkeeping
+    # staying is right while any lab (another user's, too) is still up.
+    host = NETLAB_MANIFESTS / ".host.json"
+    if host.exists() and not _baseline_host and not left:
+        leaks.append(f"{host} left behind: the host's ARP limits were not put back")
     if leaks and session.exitstatus in (pytest.ExitCode.OK, pytest.ExitCode.NO_TESTS_COLLECTED):
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
