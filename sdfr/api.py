@@ -11,6 +11,7 @@ connection made it).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import os
@@ -18,7 +19,7 @@ import secrets
 import socket
 import time
 from bisect import bisect_left
-from collections.abc import Awaitable, Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ from sdfr.config import Config, location_max_len
 from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringError, StoredKeyring
 from sdfr.model import Service
+from sdfr.status import DiscoveryStatus
 from sdfr.store import Op, PeerRecord, StateWriteError, Store, StoreError, write_error
 from sdfr.wire import check_service_fits
 
@@ -274,28 +276,19 @@ def pid_alive(pid: int) -> bool:
 
 @dataclass(frozen=True, slots=True)
 class DiscoveryState:
-    """The discovery layer as its last status record shows it."""
+    """The discovery layer as its last status record shows it (None: there is none)."""
 
     up: bool
     heartbeat_age: float | None
-    status: dict[str, Any]
+    status: DiscoveryStatus | None
 
 
-def discovery_state(status: Mapping[str, Any], now: float | None = None) -> DiscoveryState:
+def discovery_state(status: DiscoveryStatus | None, now: float | None = None) -> DiscoveryState:
     """Up iff the status's pid is alive and its heartbeat is younger than HEARTBEAT_STALE."""
-    status = dict(status)
-    heartbeat = status.get("heartbeat")
-    age: float | None = None
-    if isinstance(heartbeat, int | float) and not isinstance(heartbeat, bool):
-        age = round((time.time() if now is None else now) - heartbeat, 3)
-    pid = status.get("pid")
-    up = (
-        age is not None
-        and age < HEARTBEAT_STALE
-        and isinstance(pid, int)
-        and not isinstance(pid, bool)
-        and pid_alive(pid)
-    )
+    if status is None:
+        return DiscoveryState(up=False, heartbeat_age=None, status=None)
+    age = round((time.time() if now is None else now) - status.heartbeat, 3)
+    up = age < HEARTBEAT_STALE and pid_alive(status.pid)
     return DiscoveryState(up=up, heartbeat_age=age, status=status)
 
 
@@ -329,6 +322,9 @@ class StoreView:
         self._local: list[Service] = []
         self._local_body: bytes | None = None
         self._sizes: dict[str, int] = {}  # service id -> its JSON size (ids are never reused)
+        #: Publishes that passed the parts check and are not stored yet (a slow disk's fsync
+        #: runs in a thread: others are checked meanwhile and must count them).
+        self._reserved: dict[object, Service] = {}
 
     def peers(self) -> list[PeerRecord]:
         """The history map. Only other connections write it, so `data_version` validates it."""
@@ -367,11 +363,23 @@ class StoreView:
         for s in services:
             if s.id not in sizes:
                 sizes[s.id] = wire.service_json_size(s)
+        stored = {s.id for s in services} if self._reserved else set()
+        pending = [wire.service_json_size(s) for s in self._reserved.values() if s.id not in stored]
         return wire.parts_needed(
-            [*(sizes[s.id] for s in services), wire.service_json_size(extra)],
+            [*(sizes[s.id] for s in services), *pending, wire.service_json_size(extra)],
             robot_id=self._robot_id,
             location_len=self._location_len,
         )
+
+    @contextlib.contextmanager
+    def reserving(self, service: Service) -> Iterator[None]:
+        """Count `service` in `parts_with` until it is stored (or refused)."""
+        key = object()
+        self._reserved[key] = service
+        try:
+            yield
+        finally:
+            del self._reserved[key]
 
     def services_body(self) -> bytes:
         version, services = self.local()
@@ -476,20 +484,18 @@ class ApiState:
         """The discovery layer's latest status: the one it sent over STATUS_SOCKET while that
         is fresh, else the file it writes (which survives a restart of this layer)."""
         live = self.live_status
-        if live is not None:
-            beat = live.get("heartbeat")
-            if isinstance(beat, int | float) and time.time() - beat < HEARTBEAT_STALE:
-                return discovery_state(live)
-        return discovery_state(self.store.read_status())
+        if live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE:
+            return discovery_state(live)
+        return discovery_state(DiscoveryStatus.from_json(self.store.read_status()))
 
     def take_status(self, data: bytes) -> None:
         """A status datagram from the discovery layer."""
         try:
-            obj = json.loads(data)
+            record = DiscoveryStatus.from_json(json.loads(data))
         except ValueError:
             return
-        if isinstance(obj, dict):
-            self.live_status = obj
+        if record is not None:
+            self.live_status = record
 
     cfg: Config
     view: StoreView
@@ -498,7 +504,7 @@ class ApiState:
     hosts: frozenset[str] = frozenset()
     #: The last failed write of the state directory (time, reason, message), until one works.
     write_problem: tuple[float, str, str] | None = None
-    live_status: dict[str, Any] | None = None
+    live_status: DiscoveryStatus | None = None
 
     @property
     def store(self) -> Store:
@@ -577,17 +583,18 @@ async def publish(request: web.Request) -> web.Response:
             f"{wire.MAX_PARTS} one announcement can carry; unpublish some or make them smaller",
             "services",
         )
-    for _ in range(3):
-        result = await state.writer.write(("add", service))
-        if isinstance(result, int):
-            break
-        if chosen:  # the same id published by a request that was in flight with this one
-            again = _published_already(state, service)
-            assert again is not None
-            return again
-        service = replace(service, id=secrets.token_hex(6))  # the random id exists: another
-    else:
-        raise RequestError(500, "could not allocate a service id")
+    with state.view.reserving(service):  # checked: concurrent publishes must count it
+        for _ in range(3):
+            result = await state.writer.write(("add", service))
+            if isinstance(result, int):
+                break
+            if chosen:  # the same id published by a request that was in flight with this one
+                again = _published_already(state, service)
+                assert again is not None
+                return again
+            service = replace(service, id=secrets.token_hex(6))  # the random id exists: another
+        else:
+            raise RequestError(500, "could not allocate a service id")
     state.write_problem = None
     notify_discovery(state.cfg.state_dir)
     log.info("published %s (%s, %s), version %d", service.id, service.name, service.type, result)
@@ -697,24 +704,17 @@ async def history(request: web.Request) -> web.Response:
 # -- handlers: this robot ----------------------------------------------------------------------
 
 
-def _robot_id(cfg: Config, status: Mapping[str, Any]) -> str | None:
-    if cfg.robot_id is not None:
-        return cfg.robot_id
-    rid = status.get("robot_id")
-    return rid if isinstance(rid, str) else None
-
-
 def _discovery_json(disc: DiscoveryState) -> dict[str, Any]:
-    status = disc.status
+    s = disc.status
     return {
         "up": disc.up,
         "heartbeat_age": disc.heartbeat_age,
-        "pid": status.get("pid"),
-        "iface": status.get("iface"),
-        "started": status.get("started"),
-        "announced_version": status.get("version"),
-        "peers_reachable": status.get("peers_reachable"),
-        "peers_known": status.get("peers_known"),
+        "pid": None if s is None else s.pid,
+        "iface": None if s is None else s.iface,
+        "started": None if s is None else s.started,
+        "announced_version": None if s is None else s.version,
+        "peers_reachable": None if s is None else s.peers_reachable,
+        "peers_known": None if s is None else s.peers_known,
     }
 
 
@@ -722,16 +722,16 @@ async def self_info(request: web.Request) -> web.Response:
     state = _state(request)
     disc = state.discovery()
     version, services = state.view.local()
-    status = disc.status
+    s = disc.status
     return _json_response(
         {
-            "robot_id": _robot_id(state.cfg, status),
+            "robot_id": state.cfg.robot_id or (None if s is None else s.robot_id),
             "fleet": state.cfg.fleet,
             "iface": state.cfg.iface,
-            "address": status.get("address", ""),
-            "boot_id": status.get("boot_id"),
+            "address": "" if s is None else s.address,
+            "boot_id": None if s is None else s.boot_id,
             "version": version,
-            "location": status.get("location"),
+            "location": None if s is None else s.location,
             "software": f"sdfr/{__version__}",
             "services": [s.to_json() for s in services],
             "discovery": _discovery_json(disc),
@@ -739,40 +739,29 @@ async def self_info(request: web.Request) -> web.Response:
     )
 
 
-def _int(value: object) -> int:
-    return value if isinstance(value, int) and not isinstance(value, bool) else 0
-
-
-def discovery_error(status: Mapping[str, Any]) -> str | None:
+def discovery_error(status: DiscoveryStatus) -> str | None:
     """Why the discovery layer, though alive, is failing (None when it is not): its callbacks
     failed FAILING_AFTER times within a minute, or it cannot announce our services."""
-    errors = _mapping(status.get("errors"))
-    persistent = errors.get("persistent")
-    if isinstance(persistent, str) and persistent:
-        return persistent
-    last = errors.get("last")
-    if _int(errors.get("recent")) >= FAILING_AFTER and isinstance(last, str):
-        return last
+    errors = status.errors
+    if errors.persistent:
+        return errors.persistent
+    if errors.recent >= FAILING_AFTER and errors.last is not None:
+        return errors.last
     return None
 
 
-def health_warnings(status: Mapping[str, Any], now: float | None = None) -> list[str]:
+def health_warnings(status: DiscoveryStatus, now: float | None = None) -> list[str]:
     """What an operator should look at while the daemon is up."""
     out = []
-    conflict = _mapping(status.get("robot_id_conflict"))
-    if conflict:
-        seen = conflict.get("last_seen")
-        ago = (
-            f", {max(0.0, (time.time() if now is None else now) - seen):.0f} s ago"
-            if isinstance(seen, int | float)
-            else ""
-        )
+    conflict = status.robot_id_conflict
+    if conflict is not None:
+        ago = max(0.0, (time.time() if now is None else now) - conflict.last_seen)
         out.append(
-            f"another sender claims this robot's id {status.get('robot_id')}: "
-            f"{conflict.get('address')} (boot {conflict.get('boot_id')}{ago}, "
-            f"{_int(conflict.get('count'))} datagrams); give each daemon its own --robot-id"
+            f"another sender claims this robot's id {status.robot_id}: {conflict.address} "
+            f"(boot {conflict.boot_id}, {ago:.0f} s ago, {conflict.count} datagrams); give "
+            "each daemon its own --robot-id"
         )
-    mode = _mapping(status.get("auth")).get("mode")
+    mode = status.auth.mode
     if mode in ("accept", "sign"):
         out.append(
             f"keyring mode {mode}: unsigned datagrams are accepted; finish with "
@@ -787,17 +776,17 @@ def state_problem(state: ApiState, disc: DiscoveryState) -> tuple[str, str] | No
     layer's report."""
     if state.write_problem is not None and time.time() - state.write_problem[0] < 60.0:
         return state.write_problem[1], state.write_problem[2]
-    report = _mapping(disc.status.get("state"))
-    if disc.up and report.get("writable") is False:
-        return str(report.get("reason") or "error"), str(report.get("error") or "")
+    report = None if disc.status is None else disc.status.state
+    if disc.up and report is not None and not report.writable:
+        return report.reason or "error", report.error or ""
     return None
 
 
 async def health(request: web.Request) -> web.Response:
     state = _state(request)
     disc = state.discovery()
-    failing = discovery_error(disc.status) if disc.up else None
-    warnings = health_warnings(disc.status) if disc.up else []
+    failing = discovery_error(disc.status) if disc.up and disc.status else None
+    warnings = health_warnings(disc.status) if disc.up and disc.status else []
     cannot_write = state_problem(state, disc)
     ok = disc.up and failing is None and cannot_write is None
     return _json_response(
@@ -809,7 +798,7 @@ async def health(request: web.Request) -> web.Response:
             "discovery_error": failing,
             "state": "ok" if cannot_write is None else cannot_write[0],
             "state_error": None if cannot_write is None else cannot_write[1],
-            "auth": _mapping(disc.status.get("auth")).get("mode"),
+            "auth": None if disc.status is None else disc.status.auth.mode,
             "warnings": warnings,
         },
         status=200 if ok else 503,
@@ -833,7 +822,8 @@ def _need_unix_socket(request: web.Request) -> None:
 
 def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
     ring = stored.keyring
-    received = _mapping(_mapping(state.store.read_status().get("auth")).get("received"))
+    status = state.discovery().status
+    received = {} if status is None else status.auth.received
     interop = state.cfg.ssdp_interop
     return {
         "mode": ring.mode if ring.keyed else "open",
@@ -845,7 +835,7 @@ def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
                 "id": kid,
                 "primary": kid == ring.primary,
                 "installed": stored.installed.get(kid),
-                "received": _int(received.get(kid)),
+                "received": received.get(kid, 0),
             }
             for kid in sorted(ring.keys)
         ],
@@ -924,20 +914,11 @@ def _label(value: object) -> str:
     return str(value).replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
 
 
-def _number(value: object) -> str:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return "0"
-    return repr(value)
-
-
-def _mapping(value: object) -> Mapping[str, object]:
-    return value if isinstance(value, dict) else {}
-
-
 def metrics_text(state: ApiState) -> str:
     """The Prometheus text exposition (format 0.0.4)."""
     disc = state.discovery()
-    counters = _mapping(disc.status.get("counters"))
+    status = disc.status or DiscoveryStatus(pid=0, heartbeat=0.0)  # zeros while there is none
+    c = status.counters
     peers = state.view.peers()
     _, local = state.view.local()
     out: list[str] = []
@@ -951,25 +932,23 @@ def metrics_text(state: ApiState) -> str:
         "counter",
         "SDfR datagrams received and sent by the discovery layer, by message type.",
     )
-    for direction in ("in", "out"):
-        by_type = _mapping(counters.get(f"datagrams_{direction}"))
+    for direction, by_type in (("in", c.datagrams_in), ("out", c.datagrams_out)):
         for kind in [*DATAGRAM_TYPES, *sorted(set(by_type) - set(DATAGRAM_TYPES))]:
             out.append(
                 f'sdfr_datagrams_total{{direction="{direction}",type="{_label(kind)}"}} '
-                f"{_number(by_type.get(kind, 0))}"
+                f"{by_type.get(kind, 0)}"
             )
     family("sdfr_bytes_total", "counter", "UDP payload bytes received and sent.")
-    for direction in ("in", "out"):
-        value = _number(counters.get(f"bytes_{direction}", 0))
-        out.append(f'sdfr_bytes_total{{direction="{direction}"}} {value}')
+    out.append(f'sdfr_bytes_total{{direction="in"}} {c.bytes_in}')
+    out.append(f'sdfr_bytes_total{{direction="out"}} {c.bytes_out}')
     family(
         "sdfr_rejects_total",
         "counter",
         "Datagrams rejected (malformed, foreign, unauthenticated, replayed, refused or "
         "rate-limited), by reason.",
     )
-    for reason, count in sorted(_mapping(counters.get("rejects")).items()):
-        out.append(f'sdfr_rejects_total{{reason="{_label(reason)}"}} {_number(count)}')
+    for reason, count in sorted(c.rejects.items()):
+        out.append(f'sdfr_rejects_total{{reason="{_label(reason)}"}} {count}')
     family("sdfr_peers", "gauge", "Robots in the history map: reachable now, and known ever.")
     reachable = sum(1 for p in peers if p.reachable)
     out.append(f'sdfr_peers{{state="reachable"}} {reachable}')
@@ -983,34 +962,32 @@ def metrics_text(state: ApiState) -> str:
         "gauge",
         "Failures of the discovery layer's callbacks in the last minute.",
     )
-    out.append(f"sdfr_discovery_errors {_int(_mapping(disc.status.get('errors')).get('recent'))}")
-    auth = _mapping(disc.status.get("auth"))
+    out.append(f"sdfr_discovery_errors {status.errors.recent}")
     family("sdfr_auth_mode", "gauge", "The keyring's mode (open: no key).")
-    mode = auth.get("mode")
     for name in ("open", "accept", "sign", "enforce"):
-        out.append(f'sdfr_auth_mode{{mode="{name}"}} {int(mode == name)}')
+        out.append(f'sdfr_auth_mode{{mode="{name}"}} {int(status.auth.mode == name)}')
     family("sdfr_auth_verified_total", "counter", "Datagrams whose seal checked out, by key id.")
-    for kid, count in sorted(_mapping(auth.get("received")).items()):
-        out.append(f'sdfr_auth_verified_total{{key="{_label(kid)}"}} {_number(count)}')
+    for kid, count in sorted(status.auth.received.items()):
+        out.append(f'sdfr_auth_verified_total{{key="{_label(kid)}"}} {count}')
     family(
         "sdfr_challenges_total",
         "counter",
         "Pings sent to check a claim before believing it (a new robot, an older boot, ...).",
     )
-    out.append(f"sdfr_challenges_total {_number(counters.get('challenges', 0))}")
+    out.append(f"sdfr_challenges_total {c.challenges}")
     family(
         "sdfr_challenges_limited_total",
         "counter",
         "Challenges not sent because too many were due at once (a flood of claims).",
     )
-    out.append(f"sdfr_challenges_limited_total {_number(counters.get('challenges_limited', 0))}")
+    out.append(f"sdfr_challenges_limited_total {c.challenges_limited}")
     family(
         "sdfr_robot_id_conflicts_total",
         "counter",
         "Datagrams from another sender claiming this robot's id.",
     )
-    conflict = _mapping(disc.status.get("robot_id_conflict"))
-    out.append(f"sdfr_robot_id_conflicts_total {_int(conflict.get('count'))}")
+    conflict = status.robot_id_conflict
+    out.append(f"sdfr_robot_id_conflicts_total {0 if conflict is None else conflict.count}")
     family(
         "sdfr_api_request_seconds",
         "histogram",

@@ -15,7 +15,8 @@ import json
 import logging
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+
+from sdfr.status import Describe
 
 log = logging.getLogger("sdfrd.describe")
 
@@ -99,14 +100,9 @@ class DescribeServer:
             self._server = None
             self.where = None
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> Describe:
         where = None if self.where is None else f"{self.where[0]}:{self.where[1]}"
-        return {
-            "listening": where,
-            "open": sum(self.open.values()),
-            "served": self.served,
-            "refused": self.refused,
-        }
+        return Describe(where, sum(self.open.values()), self.served, self.refused)
 
 
 class _Connection(asyncio.Protocol):

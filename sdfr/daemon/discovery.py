@@ -22,7 +22,7 @@ from collections.abc import Callable
 from ipaddress import IPv4Address
 from pathlib import Path
 
-from sdfr import keystore, netif
+from sdfr import keystore, netif, status
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
 from sdfr.daemon import logs
@@ -524,14 +524,14 @@ class DiscoveryLayer:
 
     def _write_status(self) -> None:
         self._log_conflict()
-        status = self._status()
+        record = self._status().to_json()
         with contextlib.suppress(OSError):  # no API layer listening: it reads the file later
             self._status_sock.sendto(
-                json.dumps(status, separators=(",", ":")).encode(),
+                json.dumps(record, separators=(",", ":")).encode(),
                 str(self.cfg.state_dir / STATUS_SOCKET),
             )
         try:
-            self.store.write_status(status)
+            self.store.write_status(record)
         except StateWriteError as exc:
             self._state_failed(exc)
         else:
@@ -544,89 +544,83 @@ class DiscoveryLayer:
             log.error("%s", exc)
         self._state_problem = (time.time(), exc.reason, str(exc))
 
-    def _status(self) -> dict[str, object]:
+    def _status(self) -> status.DiscoveryStatus:
         c = self.core.counters
-        reachable = sum(1 for p in self.core.peers.values() if p.reachable)
         problem = self._state_problem
-        return {
-            "heartbeat": time.time(),
-            "pid": os.getpid(),
-            "robot_id": self.cfg.robot_id,
-            "fleet": self.cfg.fleet,
-            "iface": self.iface,
-            "address": self.address,
-            "boot_id": self.boot_id,
-            "version": self.core.version,
-            "started": self.started,
-            "location": self.core.location,
-            "peers_reachable": reachable,
-            "peers_known": len(self.core.peers),
-            "addressing": self._addressing_status(),
-            "counters": {
-                "datagrams_in": {k: c.datagrams_in[k] for k in MESSAGE_TYPES},
-                "datagrams_out": {k: c.datagrams_out[k] for k in MESSAGE_TYPES},
-                "bytes_in": c.bytes_in,
-                "bytes_out": c.bytes_out,
-                "rejects": dict(c.rejects),
-                "challenges": c.challenges,
-                "challenges_limited": c.challenges_limited,
-            },
-            "auth": self._auth_status(),
-            "describe": self.describe.status(),
-            "robot_id_conflict": self._conflict_status(),
-            "errors": self._error_status(),
-            "state": {"writable": True}
+        return status.DiscoveryStatus(
+            pid=os.getpid(),
+            heartbeat=time.time(),
+            robot_id=self.cfg.robot_id,
+            fleet=self.cfg.fleet,
+            iface=self.iface,
+            address=self.address,
+            boot_id=self.boot_id,
+            version=self.core.version,
+            started=self.started,
+            location=self.core.location,
+            peers_reachable=sum(1 for p in self.core.peers.values() if p.reachable),
+            peers_known=len(self.core.peers),
+            addressing=self._addressing_status(),
+            counters=status.Counters(
+                datagrams_in={k: c.datagrams_in[k] for k in MESSAGE_TYPES},
+                datagrams_out={k: c.datagrams_out[k] for k in MESSAGE_TYPES},
+                bytes_in=c.bytes_in,
+                bytes_out=c.bytes_out,
+                rejects=dict(c.rejects),
+                challenges=c.challenges,
+                challenges_limited=c.challenges_limited,
+            ),
+            auth=self._auth_status(),
+            describe=self.describe.status(),
+            robot_id_conflict=self._conflict_status(),
+            errors=self._error_status(),
+            state=status.StateDir()
             if problem is None
-            else {"writable": False, "reason": problem[1], "error": problem[2]},
-        }
+            else status.StateDir(writable=False, reason=problem[1], error=problem[2]),
+        )
 
-    def _auth_status(self) -> dict[str, object]:
+    def _auth_status(self) -> status.Auth:
         ring = self.core.keyring
-        return {
-            "mode": ring.mode if ring.keyed else "open",
-            "primary": ring.primary,
-            "keys": sorted(ring.keys),
-            "received": dict(self.core.counters.verified),
-            "ssdp_interop": self.core.ssdp_interop,
-        }
+        return status.Auth(
+            mode=ring.mode if ring.keyed else "open",
+            primary=ring.primary,
+            keys=tuple(sorted(ring.keys)),
+            received=dict(self.core.counters.verified),
+            ssdp_interop=self.core.ssdp_interop,
+        )
 
-    def _conflict_status(self) -> dict[str, object] | None:
+    def _conflict_status(self) -> status.Conflict | None:
         c = self.core.conflict
         if c is None:
             return None
-        return {
-            "address": c.address,
-            "boot_id": c.boot_id,
-            "last_seen": c.last_seen + self.clock_offset,
-            "count": c.count,
-        }
+        return status.Conflict(c.address, c.boot_id, c.last_seen + self.clock_offset, c.count)
 
-    def _error_status(self) -> dict[str, object]:
+    def _error_status(self) -> status.Errors:
         now = time.time()
         while self._errors and self._errors[0] < now - ERROR_WINDOW:
             self._errors.popleft()
         last = self._last_error
-        return {
-            "recent": len(self._errors),
-            "last": None if last is None else last[1],
-            "last_at": None if last is None else last[0],
+        return status.Errors(
+            recent=len(self._errors),
+            last=None if last is None else last[1],
+            last_at=None if last is None else last[0],
             # Not a crash, but as bad: the fleet cannot see our services.
-            "persistent": self.core.announce_error,
-        }
+            persistent=self.core.announce_error,
+        )
 
-    def _addressing_status(self) -> dict[str, object]:
+    def _addressing_status(self) -> status.Addressing:
         m = self.addressing
         if m is None:
-            return {"mode": "manual"}
-        return {
-            "mode": "auto",
-            "state": m.state.value,
-            "address": str(m.bound) if m.bound else None,
-            "conflicts": [
-                {"ip": str(c.ip), "other_mac": c.other_mac, "kept": c.kept, "phase": c.phase}
+            return status.Addressing()
+        return status.Addressing(
+            mode="auto",
+            state=m.state.value,
+            address=str(m.bound) if m.bound else None,
+            conflicts=tuple(
+                status.AddressConflict(str(c.ip), c.other_mac, c.kept, c.phase)
                 for c in m.conflicts[-10:]
-            ],
-        }
+            ),
+        )
 
 
 async def _amain(cfg: Config) -> None:
