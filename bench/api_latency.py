@@ -31,7 +31,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from netlab import procstat
 from netlab.lab import Lab
+from sdfr import procfs
 
 PAPER = {
     "publish_ms": [95, 130],
@@ -40,40 +42,17 @@ PAPER = {
     "cpu_percent": [2.2, 2.8],
     "memory_percent_of_4GB_max": 0.3,
 }
-TICK = os.sysconf("SC_CLK_TCK")
-PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 def proc_tree(root: int) -> list[int]:
     """`root` and its descendants."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        children.setdefault(ppid, []).append(int(entry.name))
-    out, todo = [], [root]
-    while todo:
-        pid = todo.pop()
-        out.append(pid)
-        todo.extend(children.get(pid, []))
-    return out
+    return procfs.tree(root, procfs.parent_map())
 
 
 def cpu_and_rss(pids: list[int]) -> tuple[float, int]:
     """Total CPU seconds and resident bytes of `pids`."""
-    cpu, rss = 0.0, 0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            cpu += (int(fields[11]) + int(fields[12])) / TICK
-            rss += int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * PAGE
-        except (OSError, IndexError, ValueError):
-            continue
-    return cpu, rss
+    usage = procstat.Usage.read(pids)
+    return usage.cpu_s, usage.rss_kb * 1024
 
 
 def wait(what: str, pred: Any, timeout: float) -> None:

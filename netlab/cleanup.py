@@ -31,30 +31,19 @@ from pathlib import Path
 from netlab import hostlimits, kernel, manifest, naming
 from netlab.errors import KernelError
 from netlab.manifest import Manifest, ProcRecord
+from sdfr import procfs
 
 TERM_GRACE = 5.0
 KILL_WAIT = 5.0
 
 
-def proc_stat(pid: int) -> list[str] | None:
-    """Fields of /proc/<pid>/stat from the state on (field 3), or None if gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-
-
 def start_time(pid: int) -> int | None:
     """When `pid` started, in clock ticks since boot (stat field 22)."""
-    fields = proc_stat(pid)
+    fields = procfs.stat_fields(pid)
     return int(fields[19]) if fields is not None and len(fields) > 19 else None
 
 
-def running(pid: int) -> bool:
-    """True while `pid` exists and is not a zombie."""
-    fields = proc_stat(pid)
-    return fields is not None and fields[0] != "Z"
+running = procfs.running
 
 
 def netns_of(pid: int) -> tuple[int, int] | None:

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from sdfr import procfs
 
 __all__ = ["Usage", "children", "tree", "window"]
 
@@ -24,36 +26,12 @@ _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 _PAGE_KB = (os.sysconf("SC_PAGE_SIZE") // 1024) if hasattr(os, "sysconf") else 4
 
 
-def _stat_fields(pid: int, proc: Path) -> list[str] | None:
-    """The fields of /proc/PID/stat after the command name (which may hold spaces)."""
-    try:
-        text = (proc / str(pid) / "stat").read_text()
-    except OSError:
-        return None
-    return text[text.rfind(")") + 2 :].split()
-
-
 def children(proc: Path = Path("/proc")) -> dict[int, list[int]]:
     """parent pid -> its children's pids, for every process now."""
-    out: dict[int, list[int]] = {}
-    for entry in proc.iterdir():
-        if not entry.name.isdigit():
-            continue
-        fields = _stat_fields(int(entry.name), proc)
-        if fields is None or len(fields) < 2:
-            continue
-        out.setdefault(int(fields[1]), []).append(int(entry.name))
-    return out
+    return procfs.parent_map(proc)
 
 
-def tree(pid: int, kids: Mapping[int, list[int]]) -> list[int]:
-    """`pid` and all its descendants (from a `children()` map)."""
-    out, todo = [], [pid]
-    while todo:
-        p = todo.pop()
-        out.append(p)
-        todo.extend(kids.get(p, ()))
-    return sorted(out)
+tree = procfs.tree
 
 
 def _kb(path: Path, key: str) -> int:
@@ -81,7 +59,7 @@ class Usage:
         cpu = 0.0
         rss = pss = n = 0
         for pid in pids:
-            fields = _stat_fields(pid, proc)
+            fields = procfs.stat_fields(pid, proc)
             if fields is None or len(fields) < 22:
                 continue  # gone since it was listed
             # utime and stime are fields 14 and 15 of stat (1-based), 12 and 13 here.

@@ -27,6 +27,7 @@ from typing import Any
 import pytest
 from pyroute2 import netns
 
+from sdfr import procfs
 from tests.nsfleet import PREFIX, NsFleet, name_pid, unique_name
 
 pytest_plugins = ["tests.netlab_fixtures"]
@@ -143,11 +144,10 @@ def _children() -> dict[int, str]:
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
+        fields = procfs.stat_fields(int(entry))
+        if not fields or fields[0] == "Z" or len(fields) < 2 or fields[1] != str(me):
+            continue
         try:
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            if fields[0] == "Z" or int(fields[1]) != me:
-                continue
             with open(f"/proc/{entry}/cmdline", "rb") as f:
                 cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
         except (OSError, IndexError, ValueError):

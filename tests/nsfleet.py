@@ -39,6 +39,7 @@ from typing import Any
 from pyroute2 import IPRoute, netns
 
 from netlab.naming import b36
+from sdfr import procfs
 
 PREFIX = "sdfr"
 ROBOT_IFACE = "eth0"
@@ -333,10 +334,4 @@ def _signal_group(proc: subprocess.Popen[Any], sig: int) -> None:
         os.killpg(proc.pid, sig)
 
 
-def _running(pid: int) -> bool:
-    """True while ``pid`` exists and is not a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (FileNotFoundError, ProcessLookupError, IndexError):
-        return False
+_running = procfs.running

@@ -17,6 +17,7 @@ pytest.importorskip("scapy")
 from netlab import analysis
 from netlab.capture import Capture, CaptureError, CaptureInfo, sidecar_path, start_all, stop_all
 from netlab.report import write_report
+from sdfr import procfs
 from sdfr.client import Client
 from sdfr.errors import ApiError
 from tests.nsfleet import NsFleet
@@ -30,11 +31,7 @@ RUN_S = 3.0
 
 def gone(pid: int) -> bool:
     """True when `pid` no longer runs (reaped, or a zombie nobody waits for)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
+    return not procfs.running(pid)
 
 
 def neigh_overflows() -> int:

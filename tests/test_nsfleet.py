@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 from pyroute2 import netns
 
+from sdfr import procfs
 from tests.nsfleet import NsFleet, unique_name
 
 pytestmark = pytest.mark.root
@@ -202,9 +203,4 @@ def test_existing_namespace_is_not_touched() -> None:
         netns.remove(f"{name}-air")
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
+_alive = procfs.running

@@ -1,0 +1,49 @@
+"""Reading /proc: one parser of /proc/PID/stat for the daemon, netlab, the benches and tests."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+PROC = Path("/proc")
+
+
+def stat_fields(pid: int, proc: Path = PROC) -> list[str] | None:
+    """The fields of /proc/PID/stat from the state on (field 3: state, 4: parent pid, ...);
+    None when the process is gone. The command name before them may hold anything, spaces
+    and parentheses included: the fields start after its last ')'."""
+    try:
+        text = (proc / str(pid) / "stat").read_text()
+    except (OSError, ValueError):
+        return None
+    _, paren, rest = text.rpartition(")")
+    return rest.split() if paren else None
+
+
+def running(pid: int, proc: Path = PROC) -> bool:
+    """True while `pid` exists and is not a zombie."""
+    fields = stat_fields(pid, proc)
+    return fields is not None and bool(fields) and fields[0] != "Z"
+
+
+def parent_map(proc: Path = PROC) -> dict[int, list[int]]:
+    """parent pid -> its children's pids, for every process now."""
+    out: dict[int, list[int]] = {}
+    for entry in proc.iterdir():
+        if not entry.name.isdigit():
+            continue
+        fields = stat_fields(int(entry.name), proc)
+        if fields is None or len(fields) < 2 or not fields[1].isdigit():
+            continue
+        out.setdefault(int(fields[1]), []).append(int(entry.name))
+    return out
+
+
+def tree(pid: int, kids: Mapping[int, list[int]]) -> list[int]:
+    """`pid` and all its descendants (from a `parent_map()`), sorted."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo.extend(kids.get(p, ()))
+    return sorted(out)
