@@ -26,7 +26,7 @@ __all__ = ["MSG_TYPES", "PORT", "SDfR", "describe"]
 
 PORT = wire.DEFAULT_PORT
 #: Every value of the `msg_type` field.
-MSG_TYPES = ("Discovery", "Response", "Update", "Alive", "Byebye", "Reject")
+MSG_TYPES = (*(kind.capitalize() for kind in wire.MESSAGE_TYPES), "Reject")
 _METHODS = {"M-SEARCH": "M-SEARCH", "NOTIFY": "NOTIFY", "HTTP/1.1": "RESPONSE"}
 
 

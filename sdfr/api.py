@@ -29,7 +29,7 @@ from aiohttp.http_exceptions import LineTooLong
 from aiohttp.web_protocol import RequestHandler
 from aiohttp.web_request import BaseRequest
 
-from sdfr import __version__, auth, keystore, wire
+from sdfr import __version__, auth, keystore, procfs, wire
 from sdfr.config import Config, location_max_len
 from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringError, StoredKeyring
@@ -42,8 +42,6 @@ log = logging.getLogger("sdfr.api")
 
 #: A heartbeat older than this means the discovery layer is down (it writes one every second).
 HEARTBEAT_STALE = 3.0
-#: The SDfR message types the discovery layer counts.
-DATAGRAM_TYPES = ("discovery", "response", "update", "alive", "byebye")
 #: Upper bounds (seconds) of the API latency histogram's buckets.
 LATENCY_BUCKETS = (
     0.0001,
@@ -265,13 +263,9 @@ def pid_alive(pid: int) -> bool:
         pass  # it exists, under another user
     except OSError:
         return False
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return True  # no procfs: kill(0) is all there is to know
-    # The command name in parentheses may contain anything; the state follows the last ')'.
-    fields = stat.rpartition(")")[2].split()
-    return not fields or fields[0] != "Z"
+    fields = procfs.stat_fields(pid)
+    # (No procfs: kill(0) is all there is to know.)
+    return fields is None or not fields or fields[0] != "Z"
 
 
 @dataclass(frozen=True, slots=True)
@@ -324,7 +318,7 @@ class StoreView:
         self._sizes: dict[str, int] = {}  # service id -> its JSON size (ids are never reused)
         #: Publishes that passed the parts check and are not stored yet (a slow disk's fsync
         #: runs in a thread: others are checked meanwhile and must count them).
-        self._reserved: dict[object, Service] = {}
+        self._reserved: dict[object, tuple[str, int]] = {}  # -> (service id, JSON size)
 
     def peers(self) -> list[PeerRecord]:
         """The history map. Only other connections write it, so `data_version` validates it."""
@@ -364,7 +358,7 @@ class StoreView:
             if s.id not in sizes:
                 sizes[s.id] = wire.service_json_size(s)
         stored = {s.id for s in services} if self._reserved else set()
-        pending = [wire.service_json_size(s) for s in self._reserved.values() if s.id not in stored]
+        pending = [size for sid, size in self._reserved.values() if sid not in stored]
         return wire.parts_needed(
             [*(sizes[s.id] for s in services), *pending, wire.service_json_size(extra)],
             robot_id=self._robot_id,
@@ -375,7 +369,7 @@ class StoreView:
     def reserving(self, service: Service) -> Iterator[None]:
         """Count `service` in `parts_with` until it is stored (or refused)."""
         key = object()
-        self._reserved[key] = service
+        self._reserved[key] = (service.id, wire.service_json_size(service))
         try:
             yield
         finally:
@@ -933,7 +927,7 @@ def metrics_text(state: ApiState) -> str:
         "SDfR datagrams received and sent by the discovery layer, by message type.",
     )
     for direction, by_type in (("in", c.datagrams_in), ("out", c.datagrams_out)):
-        for kind in [*DATAGRAM_TYPES, *sorted(set(by_type) - set(DATAGRAM_TYPES))]:
+        for kind in [*wire.MESSAGE_TYPES, *sorted(set(by_type) - set(wire.MESSAGE_TYPES))]:
             out.append(
                 f'sdfr_datagrams_total{{direction="{direction}",type="{_label(kind)}"}} '
                 f"{by_type.get(kind, 0)}"

@@ -55,7 +55,6 @@ from sdfr.wire import WANT_ALL, Alive, Byebye, Discovery, Origin, Reject, Respon
 Addr = tuple[str, int]
 Outgoing = tuple[bytes, Addr | None]
 
-MESSAGE_TYPES = ("discovery", "response", "update", "alive", "byebye")
 
 #: Robots the history map holds at most; when full, the one silent longest is forgotten.
 MAX_PEERS = 1024

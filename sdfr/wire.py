@@ -27,6 +27,7 @@ __all__ = [
     "DEVICE_TYPE",
     "MAX_DATAGRAM",
     "MAX_ENCODED",
+    "MESSAGE_TYPES",
     "REJECT_REASONS",
     "SEAL_RESERVE",
     "SERVER",
@@ -193,6 +194,8 @@ REJECT_REASONS = (
 )
 
 Message: TypeAlias = Discovery | Response | Update | Alive | Byebye
+#: The message types' names, as counters and metrics label them.
+MESSAGE_TYPES = ("discovery", "response", "update", "alive", "byebye")
 
 _MSEARCH_LINE = "M-SEARCH * HTTP/1.1"
 _NOTIFY_LINE = "NOTIFY * HTTP/1.1"

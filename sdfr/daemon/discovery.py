@@ -29,8 +29,9 @@ from sdfr.daemon import logs
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.daemon.describe import DescribeServer
 from sdfr.errors import SdfrError
-from sdfr.protocol import MESSAGE_TYPES, Core, CoreConfig, PeerView
+from sdfr.protocol import Core, CoreConfig, PeerView
 from sdfr.store import STATUS_SOCKET, PeerRecord, StateWriteError, Store
+from sdfr.wire import MESSAGE_TYPES
 
 log = logging.getLogger("sdfrd.discovery")
 
