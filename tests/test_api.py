@@ -557,7 +557,7 @@ async def test_a_publish_beyond_255_update_parts_is_refused(cfg: Config, store: 
     carry are accepted, and the set really encodes in 255 parts with this robot's headers."""
     name = "n" * 100
     one = {"name": name, "type": "sensor.kind", "url": "http://10.0.0.1/" + "u" * 100}
-    size = wire.service_json_size(Service(id="0" * 12, **one))
+    size = wire.service_json_size(Service.from_json(one, service_id="0" * 12))
     location_len = location_max_len(cfg.describe)
     expect = 1
     while wire.parts_needed([size] * (expect + 1), robot_id="r1", location_len=location_len) <= 255:
@@ -576,6 +576,127 @@ async def test_a_publish_beyond_255_update_parts_is_refused(cfg: Config, store: 
     location = location.ljust(location_len, "x")
     parts = wire.encode_update_parts(origin, location, 86400, services)
     assert len(parts) <= 255
+
+
+def body_of_json_size(size: int) -> dict[str, Any]:
+    """A publish body whose service, with the 12-character id the API gives it, has `size`
+    bytes of compact JSON."""
+    body: dict[str, Any] = {"name": "n" * 100, "type": "t", "attributes": {"a": "", "b": ""}}
+    pad = size - wire.service_json_size(Service.from_json(body, service_id="0" * 12))
+    body["attributes"] = {"a": "x" * (pad // 2), "b": "y" * (pad - pad // 2)}
+    assert wire.service_json_size(Service.from_json(body, service_id="0" * 12)) == size
+    return body
+
+
+def most_accepted(size: int, cfg: Config) -> int:
+    """How many services of `size` bytes of JSON this robot's set may hold, by parts_needed."""
+    location_len = location_max_len(cfg.describe)
+
+    def fits(n: int) -> bool:
+        needed = wire.parts_needed([size] * n, robot_id=cfg.robot_id, location_len=location_len)
+        return needed <= wire.MAX_PARTS
+
+    lo, hi = 1, 1
+    while fits(hi):  # parts_needed grows with n: find the last n that fits
+        lo, hi = hi, hi * 2
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
+
+
+#: The longest headers any robot can send an Update with: a 64-character robot id, a
+#: 200-byte LOCATION, the longest HOST (an IPv6 group, port 65535) and numbers.
+WORST_ORIGIN = wire.Origin(255, "r" * 64, 2**31 - 1, 2**53 - 1, "f" * 16)
+WORST_LOCATION = "http://" + "l" * (wire.MAX_LOCATION - len("http://"))
+WORST_GROUP = "ffff:ffff:ffff:ffff:ffff:ffff:ffff:ffff"
+
+
+@aio
+async def test_services_of_the_largest_size_are_accepted_255_times(
+    cfg: Config, store: Store
+) -> None:
+    size = wire.max_service_json_bytes()
+    body = body_of_json_size(size)
+    expect = most_accepted(size, cfg)
+    assert expect == wire.MAX_PARTS  # each fills a datagram alone, whatever the headers
+    async with serve(create_app(cfg, store)) as c:
+        for _ in range(expect):
+            r = await c.post("/services", json=body)
+            assert r.status == 201, await r.text()
+        r = await c.post("/services", json=body)
+        assert r.status == 507
+        answer = await r.json()
+        assert answer["field"] == "services" and "255" in answer["error"]
+    _, services = store.local_state()
+    assert len(services) == wire.MAX_PARTS
+    parts = wire.encode_update_parts(
+        WORST_ORIGIN, WORST_LOCATION, 86400, services, group=WORST_GROUP, port=65535
+    )
+    assert len(parts) == wire.MAX_PARTS
+    assert all(len(p) <= wire.MAX_ENCODED for p in parts)
+
+
+@aio
+async def test_concurrent_publishes_at_the_limit_never_overshoot(cfg: Config, store: Store) -> None:
+    """On a slow disk the fsync runs in a thread and other publishes are checked meanwhile:
+    the ones checked but not stored yet count too."""
+    body = body_of_json_size(wire.max_service_json_bytes())
+    app = create_app(cfg, store)
+    async with serve(app) as c:
+        for _ in range(wire.MAX_PARTS - 5):
+            assert (await c.post("/services", json=body)).status == 201
+        app[STATE].writer.fsync_avg = 10.0  # as measured on a slow disk: fsync in a thread
+        answers = await asyncio.gather(*(c.post("/services", json=body) for _ in range(20)))
+        assert sorted(r.status for r in answers) == [201] * 5 + [507] * 15
+        # Nothing is left reserved: a removal makes room for exactly one more.
+        sid = (await (await c.get("/services")).json())["services"][0]["id"]
+        assert (await c.delete(f"/services/{sid}")).status == 204
+        assert (await c.post("/services", json=body)).status == 201
+        assert (await c.post("/services", json=body)).status == 507
+    _, services = store.local_state()
+    assert len(services) == wire.MAX_PARTS
+
+
+@aio
+async def test_thousands_of_small_services_are_accepted_up_to_the_limit(
+    cfg: Config, store: Store
+) -> None:
+    body = {"name": "s", "type": "t"}
+    size = wire.service_json_size(Service.from_json(body, service_id="0" * 12))
+    expect = most_accepted(size, cfg)
+    assert expect > 2000
+    app = create_app(cfg, store)
+    async with serve(app) as c:
+        # Most of them in bursts, grouped into one transaction each (as on a slow disk), or
+        # this takes a minute: every publish re-reads the local set.  The last 20 one by one.
+        app[STATE].writer.fsync_avg = 10.0
+        done = 0
+        while done < expect - 20:
+            burst = min(200, expect - 20 - done)
+            answers = await asyncio.gather(*(c.post("/services", json=body) for _ in range(burst)))
+            assert [r.status for r in answers] == [201] * burst
+            done += burst
+        app[STATE].writer.fsync_avg = 0.0
+        for i in range(done, expect):
+            r = await c.post("/services", json=body)
+            assert r.status == 201, (i, await r.text())
+        r = await c.post("/services", json=body)
+        assert r.status == 507
+        answer = await r.json()
+        assert answer["field"] == "services" and "255" in answer["error"]
+        r = await c.get("/services")
+        assert len((await r.json())["services"]) == expect
+    _, services = store.local_state()
+    assert len(services) == expect
+    # The set goes out in at most 255 parts with the longest headers this robot can have.
+    origin = wire.Origin(255, "r1", 2**31 - 1, 2**53 - 1, "f" * 16)
+    location = "http://255.255.255.255:8701/description.json"
+    assert len(location) >= location_max_len(cfg.describe)
+    parts = wire.encode_update_parts(
+        origin, location, 86400, services, group=WORST_GROUP, port=65535
+    )
+    assert len(parts) <= wire.MAX_PARTS
 
 
 # -- /health: failing and warnings --------------------------------------------------------------
@@ -614,6 +735,79 @@ async def test_health_says_why_discovery_fails_and_what_to_look_at(
         assert 'sdfr_auth_verified_total{key="ab"} 3' in text
 
 
+@aio
+async def test_health_warns_while_unsigned_datagrams_are_accepted(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        discovery_store.write_status(status(auth={"mode": "open", "received": {}}))
+        answer = await (await c.get("/health")).json()
+        assert (answer["status"], answer["auth"], answer["warnings"]) == ("ok", "open", [])
+        assert answer["discovery_error"] is None
+        discovery_store.write_status(status(auth={"mode": "accept", "received": {}}))
+        r = await c.get("/health")
+        answer = await r.json()
+        assert r.status == 200 and answer["status"] == "warning" and answer["auth"] == "accept"
+        assert answer["discovery"] == "up"
+        [warning] = answer["warnings"]
+        assert "mode accept" in warning and "sdfr keys mode enforce" in warning
+        discovery_store.write_status(status(auth={"mode": "enforce", "received": {}}))
+        answer = await (await c.get("/health")).json()
+        assert answer["status"] == "ok" and answer["warnings"] == []
+        # Failing beats a warning: a 503, and the warnings still say what else to look at.
+        discovery_store.write_status(
+            status(
+                auth={"mode": "accept", "received": {}},
+                errors={"recent": 5, "last": "send failed: ENETUNREACH"},
+            )
+        )
+        r = await c.get("/health")
+        answer = await r.json()
+        assert r.status == 503 and answer["status"] == "degraded"
+        assert answer["discovery"] == "failing"
+        assert answer["discovery_error"] == "send failed: ENETUNREACH"
+        # Down: no warnings from a status nobody keeps up to date.
+        dead = status(auth={"mode": "accept", "received": {}}, pid=_dead_pid())
+        discovery_store.write_status(dead)
+        r = await c.get("/health")
+        answer = await r.json()
+        assert r.status == 503 and answer["discovery"] == "down" and answer["warnings"] == []
+
+
+@aio
+async def test_metrics_of_auth_challenges_conflicts_and_errors(
+    cfg: Config, store: Store, discovery_store: Store
+) -> None:
+    record = status(
+        auth={"mode": "enforce", "received": {"0a1b2c3d": 41, "deadbeef": 2}},
+        errors={"recent": 2, "last": "x"},
+        robot_id_conflict={"address": "10.7.0.8", "boot_id": 1, "last_seen": 1.0, "count": 6},
+    )
+    record["counters"] = {**record["counters"], "challenges": 17, "challenges_limited": 3}
+    discovery_store.write_status(record)
+    async with serve(create_app(cfg, store)) as c:
+        samples = parse_metrics(await (await c.get("/metrics")).text())
+    modes = {m: samples[f'sdfr_auth_mode{{mode="{m}"}}'] for m in ("open", *auth.MODES)}
+    assert modes == {"open": 0, "accept": 0, "sign": 0, "enforce": 1}
+    assert samples['sdfr_auth_verified_total{key="0a1b2c3d"}'] == 41
+    assert samples['sdfr_auth_verified_total{key="deadbeef"}'] == 2
+    assert samples["sdfr_challenges_total"] == 17
+    assert samples["sdfr_challenges_limited_total"] == 3
+    assert samples["sdfr_robot_id_conflicts_total"] == 6
+    assert samples["sdfr_discovery_errors"] == 2
+
+
+@aio
+async def test_metrics_of_an_open_fleet_without_discovery(cfg: Config, store: Store) -> None:
+    async with serve(create_app(cfg, store)) as c:
+        samples = parse_metrics(await (await c.get("/metrics")).text())
+    assert samples["sdfr_discovery_up"] == 0
+    assert samples["sdfr_discovery_errors"] == 0
+    assert samples["sdfr_challenges_total"] == 0
+    assert samples["sdfr_robot_id_conflicts_total"] == 0
+    assert not any(k.startswith("sdfr_auth_verified_total") for k in samples)
+
+
 # -- the keyring: unix socket only --------------------------------------------------------------
 
 
@@ -636,9 +830,11 @@ async def test_key_management_is_refused_over_tcp(cfg: Config, store: Store) -> 
             ("GET", "/keys", None),
             ("POST", "/keys", {"key": base64.b64encode(bytes(32)).decode()}),
             ("PUT", "/keys/mode", {"mode": "accept"}),
+            ("POST", f"/keys/{auth.key_id(bytes(32))}/use", None),
+            ("DELETE", f"/keys/{auth.key_id(bytes(32))}", None),
         ):
             r = await c.request(method, path, json=body)
-            assert r.status == 403
+            assert r.status == 403 and r.content_type == "application/json"
             assert "unix socket" in (await r.json())["error"]
     assert not (cfg.state_dir / "keyring.json").exists()
 
@@ -659,26 +855,47 @@ async def test_the_keyring_over_the_unix_socket(
         bodies.append(text)
         return r.status, (json.loads(text) if text else None)
 
-    discovery_store.write_status(status(auth={"mode": "accept", "received": {id1: 12}}))
+    def on_disk() -> Keyring:
+        return keystore.load_keyring(cfg.state_dir)
+
+    discovery_store.write_status(status(auth={"mode": "accept", "received": {id1: 12, id2: 1}}))
     async with over_unix_socket(create_app(cfg, store), sock) as s:
         assert await call(s, "GET", "/keys") == (
             200,
             {"mode": "open", "primary": None, "keyed": False, "ssdp_interop": True, "keys": []},
         )
+        code, err = await call(s, "PUT", "/keys/mode", {"mode": "sign"})
+        assert code == 409 and err["field"] == "mode"  # no key yet: nothing to sign with
+        assert not keystore.keyring_path(cfg.state_dir).exists()
         code, ring = await call(s, "POST", "/keys", {"key": b64[k1]})
         assert code == 201 and ring["id"] == id1 and ring["mode"] == "accept"
         assert ring["keys"][0]["received"] == 12 and ring["ssdp_interop"] is False
+        assert ring["keys"][0]["primary"] is True
+        assert isinstance(ring["keys"][0]["installed"], float)
+        assert on_disk() == Keyring.of([k1], mode="accept")
         assert (await call(s, "POST", "/keys", {"key": b64[k1]}))[0] == 200
-        assert (await call(s, "POST", "/keys", {"key": b64[k2]}))[0] == 201
+        code, ring = await call(s, "POST", "/keys", {"key": b64[k2]})
+        assert code == 201 and ring["primary"] == id1 and ring["mode"] == "accept"
+        assert {k["id"]: k["received"] for k in ring["keys"]} == {id1: 12, id2: 1}
+        assert on_disk() == Keyring.of([k1, k2], primary=k1, mode="accept")
         code, ring = await call(s, "POST", f"/keys/{id2}/use")
         assert code == 200 and ring["primary"] == id2
+        assert on_disk() == Keyring.of([k1, k2], primary=k2, mode="accept")
+        code, err = await call(s, "POST", "/keys/0badc0de/use")
+        assert code == 404 and err["field"] == "id"
         code, err = await call(s, "DELETE", f"/keys/{id2}")
         assert code == 409 and err["field"] == "id"
         assert (await call(s, "DELETE", f"/keys/{id1}"))[0] == 204
+        assert bodies[-1] == ""
+        assert on_disk() == Keyring.of([k2], mode="accept")
         assert (await call(s, "DELETE", f"/keys/{id1}"))[0] == 404
+        code, ring = await call(s, "PUT", "/keys/mode", {"mode": "sign"})
+        assert code == 200 and ring["mode"] == "sign" and on_disk().mode == "sign"
         code, ring = await call(s, "PUT", "/keys/mode", {"mode": "enforce"})
         assert code == 200 and ring["mode"] == "enforce"
-        assert (await call(s, "PUT", "/keys/mode", {"mode": "lax"}))[0] == 422
+        code, err = await call(s, "PUT", "/keys/mode", {"mode": "lax"})
+        assert code == 422 and err["field"] == "mode" and on_disk().mode == "enforce"
+        assert (await call(s, "GET", "/keys"))[1] == ring
         code, err = await call(s, "POST", "/keys", {"key": "not base64"})
         assert code == 422 and err["field"] == "key"
         assert (await call(s, "POST", "/keys", {"key": b64[k1], "more": 1}))[0] == 422

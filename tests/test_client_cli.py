@@ -466,3 +466,100 @@ def test_a_publish_waits_a_moment_for_sdfrd(tmp_path_factory: pytest.TempPathFac
         finally:
             started.join()
             api.stop()
+
+
+def test_cli_keys_generate_force_replaces_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "fleet.key"
+    assert sdfr(["--json", "keys", "generate", str(path)]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first == {"id": auth.key_id(keystore.read_key_file(path)), "file": str(path)}
+    assert sdfr(["keys", "generate", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("sdfr: ") and "--force" in err and len(err.splitlines()) == 1
+    assert auth.key_id(keystore.read_key_file(path)) == first["id"]  # untouched
+    assert sdfr(["keys", "generate", "--force", str(path)]) == 0
+    out = capsys.readouterr().out
+    kid = auth.key_id(keystore.read_key_file(path))
+    assert kid != first["id"] and f"wrote key {kid} to {path}" in out
+    assert path.stat().st_mode & 0o777 == 0o600
+
+
+def test_cli_keys_json_shapes_and_mistakes(
+    layer: ApiLayer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    key_file = tmp_path / "k.key"
+    sdfr(["keys", "generate", str(key_file)])
+    kid = auth.key_id(keystore.read_key_file(key_file))
+    key_text = key_file.read_text().splitlines()[1]
+    capsys.readouterr()
+    where = ["--socket", str(layer.socket), "keys"]
+
+    assert sdfr(["--json", *where, "list"]) == 0
+    assert json.loads(capsys.readouterr().out) == {
+        "mode": "open",
+        "primary": None,
+        "keyed": False,
+        "ssdp_interop": True,
+        "keys": [],
+    }
+    # Nothing to sign with yet: a mode is refused, in one line.
+    assert sdfr([*where, "mode", "sign"]) == 1
+    err = capsys.readouterr().err
+    assert "install" in err and len(err.splitlines()) == 1
+    assert sdfr([*where, "mode", "lax"]) == 2  # not a mode: a usage error
+    capsys.readouterr()
+
+    assert sdfr(["--json", *where, "install", str(key_file)]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["id"] == kid and answer["mode"] == "accept" and answer["primary"] == kid
+    [entry] = answer["keys"]
+    assert set(entry) == {"id", "primary", "installed", "received"}
+    assert entry["id"] == kid and entry["primary"] is True and entry["received"] == 0
+    assert sdfr(["--json", *where, "use", kid]) == 0
+    assert json.loads(capsys.readouterr().out)["primary"] == kid
+    assert sdfr(["--json", *where, "mode", "sign"]) == 0
+    assert json.loads(capsys.readouterr().out)["mode"] == "sign"
+    assert sdfr([*where, "list"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"mode: sign, signing with {kid}")
+    assert "KEY" in out and "RECEIVED" in out and kid in out
+    assert sdfr([*where, "use", "0badc0de"]) == 1
+    assert "no key '0badc0de'" in capsys.readouterr().err
+    assert sdfr([*where, "remove", "0badc0de"]) == 1
+    assert "no key '0badc0de'" in capsys.readouterr().err
+    # A second key, used, lets the first one go; remove --json shows the keyring left.
+    other = tmp_path / "other.key"
+    sdfr(["--json", "keys", "generate", str(other)])
+    other_id = json.loads(capsys.readouterr().out)["id"]
+    assert sdfr([*where, "install", str(other)]) == 0
+    assert "this robot had no key" not in capsys.readouterr().out
+    assert sdfr([*where, "use", other_id]) == 0
+    capsys.readouterr()
+    assert sdfr(["--json", *where, "remove", kid]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert [k["id"] for k in answer["keys"]] == [other_id] and answer["mode"] == "sign"
+    assert sdfr([*where, "mode", "enforce"]) == 0
+    assert capsys.readouterr().out.startswith(f"mode: enforce, signing with {other_id}")
+    # The key itself never comes back over the API, nor shows up in the daemon's log.
+    assert key_text not in layer.logs()
+    assert keystore.load_keyring(layer.state_dir).mode == "enforce"
+
+
+def test_cli_health_exit_status_when_discovery_fails_or_warns(
+    layer: ApiLayer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    write_healthy_status(layer.state_dir, auth={"mode": "accept", "received": {}})
+    assert sdfr(["--api", layer.api, "health", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["status"] == "warning" and answer["auth"] == "accept"
+    write_healthy_status(layer.state_dir, errors={"recent": 4, "last": "timer failed: boom"})
+    assert sdfr(["--api", layer.api, "health"]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("degraded: api up, discovery failing")
+    assert "error: timer failed: boom" in out
+    write_healthy_status(layer.state_dir, errors={"recent": 0, "persistent": "set too large"})
+    assert sdfr(["--api", layer.api, "health", "--json"]) == 1
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["discovery"] == "failing" and answer["discovery_error"] == "set too large"

@@ -108,3 +108,50 @@ def test_fleet_key_options(tmp_path: Path) -> None:
         from_args(["--auth", "lax"])
     with pytest.raises(ConfigError, match="ssdp_interop: must be auto, on or off"):
         from_args(["--ssdp-interop", "yes"])
+
+
+def test_fleet_key_options_from_flags() -> None:
+    cfg = from_args(["--key-file", "/etc/sdfr/k.key", "--auth", "accept", "--ssdp-interop", "off"])
+    assert (cfg.key_file, cfg.auth, cfg.ssdp_interop) == (Path("/etc/sdfr/k.key"), "accept", "off")
+    args = to_args(cfg)
+    assert args[args.index("--key-file") + 1] == "/etc/sdfr/k.key"
+    assert args[args.index("--auth") + 1] == "accept"
+    assert args[args.index("--ssdp-interop") + 1] == "off"
+    assert from_args(args) == cfg
+    assert "--auth" not in to_args(from_args([]))  # unset: the keyring's own mode is kept
+    assert "--key-file" not in to_args(from_args([]))
+    for mode in ("accept", "sign", "enforce"):
+        assert from_args(["--auth", mode]).auth == mode
+    for interop in ("auto", "on", "off"):
+        assert from_args(["--ssdp-interop", interop]).ssdp_interop == interop
+
+
+def test_flags_override_the_fleet_key_options_of_the_file(tmp_path: Path) -> None:
+    conf = tmp_path / "sdfrd.toml"
+    conf.write_text('[sdfrd]\nkey-file = "/a.key"\nauth = "enforce"\nssdp-interop = "off"\n')
+    cfg = from_args(["--config", str(conf), "--auth", "sign", "--key-file", "/b.key"])
+    assert (cfg.key_file, cfg.auth, cfg.ssdp_interop) == (Path("/b.key"), "sign", "off")
+
+
+@pytest.mark.parametrize(
+    ("text", "word"),
+    [
+        ('auth = "lax"\n', "auth: must be accept, sign or enforce, got 'lax'"),
+        ("auth = 1\n", "auth: expected a string"),
+        ('auth = "Enforce"\n', "auth:"),
+        ('ssdp_interop = "yes"\n', "ssdp_interop: must be auto, on or off, got 'yes'"),
+        ("ssdp_interop = true\n", "ssdp_interop: expected a string"),
+    ],
+)
+def test_bad_fleet_key_options_name_the_key(tmp_path: Path, text: str, word: str) -> None:
+    conf = tmp_path / "bad.toml"
+    conf.write_text(text)
+    with pytest.raises(ConfigError, match=word):
+        from_args(["--config", str(conf)])
+
+
+def test_help_documents_the_fleet_key_options() -> None:
+    text = build_parser().format_help()
+    for flag in ("--key-file", "--auth", "--ssdp-interop"):
+        assert flag in text
+    assert "sdfr keys generate" in " ".join(text.split())

@@ -190,3 +190,82 @@ def test_one_daemon_per_state_dir(tmp_path: Path) -> None:
     finally:
         os.close(fd)
     os.close(lock_state_dir(tmp_path))  # free again once the holder is gone
+
+
+# -- more corners ------------------------------------------------------------------------------
+
+
+def test_key_file_errors_name_the_path(tmp_path: Path) -> None:
+    missing = tmp_path / "missing.key"
+    with pytest.raises(ConfigError, match="does not exist") as err:
+        keystore.read_key_file(missing)
+    assert str(missing) in str(err.value)
+    binary = tmp_path / "binary.key"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ConfigError, match="not text") as err:
+        keystore.read_key_file(binary)
+    assert str(binary) in str(err.value)
+    padded = write(tmp_path / "padded", base64.urlsafe_b64encode(K2).decode() + "\n")
+    assert keystore.read_key_file(padded) == K2  # urlsafe with its padding kept
+
+
+def test_parse_key_accepts_whitespace_and_both_alphabets() -> None:
+    text = base64.b64encode(bytes([250] * 32)).decode()  # has + and / in it
+    assert "+" in text or "/" in text
+    spaced = text[:10] + " \n" + text[10:]
+    assert keystore.parse_key(spaced) == bytes([250] * 32)
+    assert keystore.parse_key(text.replace("+", "-").replace("/", "_").rstrip("=")) == bytes(
+        [250] * 32
+    )
+    with pytest.raises(ConfigError, match="no key"):
+        keystore.parse_key("  \n")
+
+
+def test_saving_replaces_a_too_open_keyring_file_with_a_private_one(tmp_path: Path) -> None:
+    path = keystore.keyring_path(tmp_path)
+    keystore.save(tmp_path, StoredKeyring(Keyring.of([K1])))
+    path.chmod(0o644)
+    stored = StoredKeyring(Keyring.of([K1, K2], mode="accept"), {auth.key_id(K2): 5.5})
+    keystore.save(tmp_path, stored)
+    assert mode_of(path) == 0o600
+    assert keystore.load(tmp_path).installed == {auth.key_id(K2): 5.5}
+    # The file says which key is which, and never anything but those keys.
+    text = path.read_text()
+    assert base64.b64encode(K1).decode() in text and '"mode": "accept"' in text
+
+
+def test_a_keyring_that_cannot_be_read_is_named(tmp_path: Path) -> None:
+    keystore.keyring_path(tmp_path).mkdir()
+    with pytest.raises(SdfrError, match="cannot read") as err:
+        keystore.load(tmp_path)
+    assert "keyring.json" in str(err.value)
+
+
+def test_seed_with_the_key_file_already_in_the_keyring_is_quiet(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    state = tmp_path / "state"
+    keystore.save(state, StoredKeyring(Keyring.of([K1, K2], primary=K2, mode="sign")))
+    before = keystore.keyring_path(state).stat().st_mtime_ns
+    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+        ring = keystore.seed(state, key_file(tmp_path, K1), "sign")
+    assert ring == Keyring.of([K1, K2], primary=K2, mode="sign")
+    assert "update key_file" not in caplog.text
+    assert keystore.keyring_path(state).stat().st_mtime_ns == before  # same mode: not rewritten
+
+
+def test_seed_reports_a_bad_key_file_even_with_an_empty_keyring(tmp_path: Path) -> None:
+    bad = write(tmp_path / "bad.key", "nope\n")
+    with pytest.raises(ConfigError) as err:
+        keystore.seed(tmp_path / "state", bad, None)
+    assert str(bad) in str(err.value)
+    assert not keystore.keyring_path(tmp_path / "state").exists()
+
+
+def test_later_keys_keep_the_primary_and_mode_of_an_accepting_keyring() -> None:
+    stored, _ = keystore.install(StoredKeyring(), K1, 1.0)
+    stored, added = keystore.install(stored, K2, 2.0)
+    assert added and stored.keyring.primary == auth.key_id(K1)
+    assert stored.keyring.mode == "accept"
+    assert stored.installed == {auth.key_id(K1): 1.0, auth.key_id(K2): 2.0}
+    assert keystore.set_mode(stored, "sign").keyring.mode == "sign"
