@@ -348,8 +348,9 @@ class StoreView:
         return self._local_version, self._local
 
     def parts_with(self, extra: Service) -> int:
-        """Update parts the local set plus `extra` needs (with the longest headers any robot
-        can have); each service's JSON size is computed once."""
+        """Update parts the local set, the publishes in flight and `extra` need, with the
+        longest headers this robot can send (its id, its longest LOCATION); each service's
+        JSON size is computed once."""
         _, services = self.local()
         sizes = self._sizes
         if len(sizes) > 2 * len(services) + 64:  # drop the sizes of services long gone
