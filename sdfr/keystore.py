@@ -208,7 +208,27 @@ def save(state_dir: Path, stored: StoredKeyring) -> None:
         raise SdfrError(f"keyring: {exc}") from None
 
 
-def seed(state_dir: Path, key_file: Path | None, mode: str | None) -> Keyring:
+def save_keyring(
+    state_dir: Path, keyring: Keyring, installed: Mapping[str, float] | None = None
+) -> None:
+    """Write `keyring` as the stored one (see `save`).
+
+    `installed` gives when each key was installed; without it, keys already stored keep
+    their recorded time and new ones are stamped now.  Times of keys not in `keyring` are
+    dropped.
+    """
+    if installed is None:
+        try:
+            before = load(state_dir).installed
+        except SdfrError:  # a damaged keyring is being replaced: no times to keep
+            before = {}
+        now = time.time()
+        installed = {kid: before.get(kid, now) for kid in keyring.keys}
+    kept = {kid: t for kid, t in installed.items() if kid in keyring.keys}
+    save(state_dir, StoredKeyring(keyring, kept))
+
+
+def seed_keyring(state_dir: Path, key_file: Path | None, mode: str | None) -> Keyring:
     """At start: the keyring the daemon runs with.
 
     A keyring with keys is authoritative (a rotation may have replaced the key in

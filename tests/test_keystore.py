@@ -121,17 +121,17 @@ def key_file(tmp_path: Path, key: bytes, name: str = "fleet.key") -> Path:
 
 
 def test_seed_without_any_key_is_an_open_fleet(tmp_path: Path) -> None:
-    assert keystore.seed(tmp_path, None, None) == OPEN
+    assert keystore.seed_keyring(tmp_path, None, None) == OPEN
     assert not keystore.keyring_path(tmp_path).exists()
 
 
 def test_seed_takes_the_key_file_into_an_empty_keyring(tmp_path: Path) -> None:
     state = tmp_path / "state"
-    ring = keystore.seed(state, key_file(tmp_path, K1), None)
+    ring = keystore.seed_keyring(state, key_file(tmp_path, K1), None)
     assert ring == Keyring.of([K1], mode="enforce")
     assert keystore.load_keyring(state) == ring
     other = tmp_path / "other"
-    assert keystore.seed(other, key_file(tmp_path, K1), "accept").mode == "accept"
+    assert keystore.seed_keyring(other, key_file(tmp_path, K1), "accept").mode == "accept"
 
 
 def test_seed_keeps_a_keyring_a_rotation_changed(
@@ -140,14 +140,14 @@ def test_seed_keeps_a_keyring_a_rotation_changed(
     state = tmp_path / "state"
     keystore.save(state, StoredKeyring(Keyring.of([K2], mode="enforce")))
     with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
-        ring = keystore.seed(state, key_file(tmp_path, K1), None)
+        ring = keystore.seed_keyring(state, key_file(tmp_path, K1), None)
     assert ring == Keyring.of([K2])  # the stored keyring wins over a stale key_file
     assert "update key_file" in caplog.text
     # An explicit mode replaces the stored one, and is stored.
-    assert keystore.seed(state, None, "sign").mode == "sign"
+    assert keystore.seed_keyring(state, None, "sign").mode == "sign"
     assert keystore.load_keyring(state).mode == "sign"
     with pytest.raises(ConfigError, match="auth"):
-        keystore.seed(state, None, "lax")
+        keystore.seed_keyring(state, None, "lax")
 
 
 def test_install_use_remove_and_mode(tmp_path: Path) -> None:
@@ -248,7 +248,7 @@ def test_seed_with_the_key_file_already_in_the_keyring_is_quiet(
     keystore.save(state, StoredKeyring(Keyring.of([K1, K2], primary=K2, mode="sign")))
     before = keystore.keyring_path(state).stat().st_mtime_ns
     with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
-        ring = keystore.seed(state, key_file(tmp_path, K1), "sign")
+        ring = keystore.seed_keyring(state, key_file(tmp_path, K1), "sign")
     assert ring == Keyring.of([K1, K2], primary=K2, mode="sign")
     assert "update key_file" not in caplog.text
     assert keystore.keyring_path(state).stat().st_mtime_ns == before  # same mode: not rewritten
@@ -257,7 +257,7 @@ def test_seed_with_the_key_file_already_in_the_keyring_is_quiet(
 def test_seed_reports_a_bad_key_file_even_with_an_empty_keyring(tmp_path: Path) -> None:
     bad = write(tmp_path / "bad.key", "nope\n")
     with pytest.raises(ConfigError) as err:
-        keystore.seed(tmp_path / "state", bad, None)
+        keystore.seed_keyring(tmp_path / "state", bad, None)
     assert str(bad) in str(err.value)
     assert not keystore.keyring_path(tmp_path / "state").exists()
 
@@ -269,3 +269,24 @@ def test_later_keys_keep_the_primary_and_mode_of_an_accepting_keyring() -> None:
     assert stored.keyring.mode == "accept"
     assert stored.installed == {auth.key_id(K1): 1.0, auth.key_id(K2): 2.0}
     assert keystore.set_mode(stored, "sign").keyring.mode == "sign"
+
+
+def test_save_keyring_keeps_the_install_times_of_keys_it_keeps(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    k1, k2 = auth.key_id(K1), auth.key_id(K2)
+    keystore.save_keyring(tmp_path, Keyring.of([K1], mode="sign"), {k1: 1.0, "gone": 9.0})
+    stored = keystore.load(tmp_path)
+    assert stored == StoredKeyring(Keyring.of([K1], mode="sign"), {k1: 1.0})
+    assert mode_of(keystore.keyring_path(tmp_path)) == 0o600
+    # Without times: the key already there keeps its time, the new one is stamped now.
+    monkeypatch.setattr(keystore.time, "time", lambda: 50.0)
+    keystore.save_keyring(tmp_path, Keyring.of([K1, K2], primary=K2, mode="enforce"))
+    stored = keystore.load(tmp_path)
+    assert stored.keyring == Keyring.of([K1, K2], primary=K2, mode="enforce")
+    assert stored.installed == {k1: 1.0, k2: 50.0}
+    assert keystore.load_keyring(tmp_path) == stored.keyring
+    # Over a damaged keyring (being replaced): every key is stamped now.
+    keystore.keyring_path(tmp_path).write_text("{")
+    keystore.save_keyring(tmp_path, Keyring.of([K2]))
+    assert keystore.load(tmp_path).installed == {k2: 50.0}

@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger().setLevel(cfg.log_level.upper())
         Store(cfg.state_dir).close()  # a state directory we cannot use is reported once, here
         lock_fd = lock_state_dir(cfg.state_dir)
-        keyring = keystore.seed(cfg.state_dir, cfg.key_file, cfg.auth)
+        keyring = keystore.seed_keyring(cfg.state_dir, cfg.key_file, cfg.auth)
         log.info(
             "fleet %d: %s",
             cfg.fleet,
