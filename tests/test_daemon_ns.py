@@ -14,7 +14,9 @@ from typing import Any
 
 import pytest
 
+from sdfr import keystore
 from sdfr.client import Client
+from sdfr.daemon.supervisor import LOCK_NAME, lock_state_dir
 from tests.nsfleet import NsFleet
 from tests.waiting import poll
 
@@ -140,6 +142,41 @@ def test_three_daemons_discover_publish_leave_die_and_restore(robots: Robots) ->
     r.start(2)
     assert [s["name"] for s in r.client(2).services()] == ["arm"]
     poll("r2 back with arm", lambda: all("arm" in r.services_of(j, "r2") for j in (1, 3)), 3.0)
+
+
+def test_one_daemon_per_state_dir(robots: Robots) -> None:
+    r = robots
+    r.start(1)
+    state = r.state(1)
+    pids = r.layers(1)
+    # Both layers hold the lock too (inherited), so it outlives a supervisor that dies first.
+    lock = (state / LOCK_NAME).resolve()
+    for layer in ("api", "discovery"):
+        fds = Path(f"/proc/{pids[layer]}/fd")
+        assert any(fd.readlink() == lock for fd in fds.iterdir()), layer
+    # A second daemon on the same state dir (from another robot's namespace, with a key
+    # file it would seed the keyring from) is refused before it touches anything.
+    key = r.tmp / "fleet.key"
+    keystore.generate_key_file(key)
+    res = r.fleet.exec(
+        2,
+        [
+            sys.executable, "-m", "sdfr.daemon.supervisor", "--iface", "eth0",
+            "--robot-id", "r9", "--state-dir", str(state), "--key-file", str(key),
+        ],
+    )  # fmt: skip
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.strip() == (
+        f"sdfrd: state_dir {state} is in use by another sdfrd (pid {pids['supervisor']}); "
+        "give each daemon its own --state-dir"
+    )
+    assert not keystore.keyring_path(state).exists()
+    assert r.layers(1) == pids
+    assert r.client(1).health()["discovery"] == "up"
+    # Stopped, the daemon leaves the state dir free for the next one.
+    r.fleet.kill(r.procs[1])
+    assert r.procs[1].wait(timeout=10) == 0
+    os.close(lock_state_dir(state))
 
 
 def test_layers_have_independent_life_cycles(robots: Robots) -> None:
