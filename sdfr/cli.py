@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import os
+import stat
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -149,12 +150,20 @@ def _keys_parser(command: Callable[[str, str], argparse.ArgumentParser]) -> None
         "the fleet keyring: keys that sign and check every datagram (talks to sdfrd over its "
         "unix socket STATE_DIR/api.sock, or --socket; `generate` only writes a file)",
     )
-    k.add_argument(
+    where = k.add_mutually_exclusive_group()
+    where.add_argument(
         "--state-dir",
         type=Path,
         default=None,
         metavar="DIR",
         help=f"sdfrd's state directory, for its api.sock (default {default_state_dir()})",
+    )
+    # SUPPRESS: when not given here, `sdfr --socket PATH keys ...` still counts.
+    where.add_argument(
+        "--socket",
+        default=argparse.SUPPRESS,
+        metavar="PATH",
+        help="sdfrd's unix socket (instead of --state-dir)",
     )
     ks = k.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
     g = ks.add_parser("generate", help="write a new random fleet key to FILE (mode 0600)")
@@ -473,6 +482,27 @@ def _wifi_config(args: argparse.Namespace) -> int:
     return 0
 
 
+_CHECK_SOCKET = "is it running, and is --state-dir (or --socket) right?"
+_NEED_ACCESS = "key management needs access to the socket (root, or the socket's group)"
+
+
+def _keys_socket(args: argparse.Namespace) -> str:
+    """The unix socket `sdfr keys` talks to: --socket, else --state-dir's api.sock; ApiError
+    saying what is wrong when there is no socket there."""
+    path = args.socket or str((args.state_dir or default_state_dir()) / "api.sock")
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise ApiError(0, f"no sdfrd answers on {path}: {_CHECK_SOCKET}") from None
+    except PermissionError:
+        raise ApiError(0, f"cannot look at {path}: permission denied; {_NEED_ACCESS}") from None
+    except OSError as exc:
+        raise ApiError(0, f"cannot look at {path}: {exc.strerror or exc}") from None
+    if not stat.S_ISSOCK(mode):
+        raise ApiError(0, f"{path} is not a unix socket: is --state-dir (or --socket) right?")
+    return path
+
+
 def _keys(args: argparse.Namespace) -> int:
     """`sdfr keys ...`: on the daemon's unix socket (or, for generate, on a file)."""
     as_json = getattr(args, "json", False)
@@ -486,15 +516,25 @@ def _keys(args: argparse.Namespace) -> int:
                 "key_file, or `sdfr keys install` it on running robots"
             )
         else:
-            socket_path = args.socket or str((args.state_dir or default_state_dir()) / "api.sock")
-            if not Path(socket_path).exists():
-                raise ApiError(
-                    0,
-                    f"no sdfrd answers on {socket_path}: is it running, and is --state-dir "
-                    "(or --socket) right?",
+            if args.api != DEFAULT_API:
+                print(
+                    "sdfr: keys: key management is only available on sdfrd's unix socket; "
+                    "give --state-dir DIR or --socket PATH, not --api",
+                    file=sys.stderr,
                 )
+                return 2
+            if args.socket is not None and args.state_dir is not None:
+                print("sdfr: keys: give --socket or --state-dir, not both", file=sys.stderr)
+                return 2
+            socket_path = _keys_socket(args)
             with Client(unix_socket=socket_path, timeout=args.timeout) as client:
-                answer, text = _keys_call(client, args)
+                try:
+                    answer, text = _keys_call(client, args)
+                except ApiError as exc:
+                    if exc.status != 0 or not exc.message.startswith("cannot reach"):
+                        raise
+                    hint = _NEED_ACCESS if "Permission denied" in exc.message else _CHECK_SOCKET
+                    raise ApiError(0, f"{exc.message}; {hint}") from None
     except (ConfigError, ApiError) as exc:
         print(f"sdfr: {exc}", file=sys.stderr)
         return 1

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -563,3 +565,69 @@ def test_cli_health_exit_status_when_discovery_fails_or_warns(
     assert sdfr(["--api", layer.api, "health", "--json"]) == 1
     answer = json.loads(capsys.readouterr().out)
     assert answer["discovery"] == "failing" and answer["discovery_error"] == "set too large"
+
+
+def test_cli_keys_talks_only_to_a_unix_socket_and_says_why_it_cannot(
+    layer: ApiLayer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # --socket after `keys`, like --state-dir (and before it, like every command).
+    assert sdfr(["--json", "keys", "--socket", str(layer.socket), "list"]) == 0
+    assert json.loads(capsys.readouterr().out)["keyed"] is False
+    # Never over TCP, and one place at a time: usage errors.
+    assert sdfr(["--api", layer.api, "keys", "list"]) == 2
+    err = capsys.readouterr().err
+    assert "only available on sdfrd's unix socket" in err and "--api" in err
+    assert sdfr(["--socket", str(layer.socket), "keys", "--state-dir", str(tmp_path), "list"]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert sdfr(["keys", "--socket", "a", "--state-dir", "b", "list"]) == 2
+    capsys.readouterr()
+    # A file that is no socket; a socket nobody listens on (sdfrd died without cleaning up).
+    plain = tmp_path / "plain.sock"
+    plain.touch()
+    assert sdfr(["keys", "--socket", str(plain), "list"]) == 1
+    err = capsys.readouterr().err
+    assert err == f"sdfr: {plain} is not a unix socket: is --state-dir (or --socket) right?\n"
+    stale = tmp_path / "api.sock"
+    with socket.socket(socket.AF_UNIX) as s:
+        s.bind(str(stale))
+    assert sdfr(["keys", "--state-dir", str(tmp_path), "list"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"sdfr: cannot reach sdfrd at {stale}: Connection refused; is it")
+    assert len(err.splitlines()) == 1
+    # `generate` needs no daemon: it works whatever the socket.
+    assert sdfr(["keys", "--socket", str(plain), "generate", str(tmp_path / "k.key")]) == 0
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0 or shutil.which("setpriv") is None, reason="needs root and setpriv"
+)
+def test_cli_keys_says_when_this_user_may_not_use_the_socket(tmp_path: Path) -> None:
+    """As an unprivileged user: a socket of mode 0660 owned by root, and one in a directory
+    that user cannot enter."""
+    open_dir = Path(tempfile.mkdtemp(prefix="sdfr-keys-", dir="/tmp"))
+    try:
+        open_dir.chmod(0o755)
+        sock = open_dir / "api.sock"
+        private = open_dir / "private"
+        private.mkdir(mode=0o700)
+        with socket.socket(socket.AF_UNIX) as s:
+            s.bind(str(sock))
+            s.listen()
+            sock.chmod(0o660)
+            for where, says in (
+                (["--socket", str(sock)], f"cannot reach sdfrd at {sock}: Permission denied"),
+                (["--state-dir", str(private)], f"cannot look at {private / 'api.sock'}"),
+            ):
+                res = subprocess.run(
+                    [
+                        "setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
+                        sys.executable, "-m", "sdfr.cli", "keys", *where, "list",
+                    ],
+                    capture_output=True, text=True, timeout=30, cwd=Path(__file__).parents[1],
+                )  # fmt: skip
+                assert res.returncode == 1, res.stderr
+                assert res.stderr.startswith(f"sdfr: {says}")
+                assert "needs access to the socket" in res.stderr
+                assert len(res.stderr.splitlines()) == 1
+    finally:
+        shutil.rmtree(open_dir)
