@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import contextlib
 import json
 import logging
 import os
@@ -105,30 +106,41 @@ def generate_key_file(path: Path, *, force: bool = False) -> str:
 
 
 def _write_private(path: Path, body: bytes, *, exclusive: bool) -> None:
-    """Write `body` to `path`, mode 0600, durably; replace atomically unless `exclusive`."""
+    """Write `body` to `path`, mode 0600, durably; replace atomically unless `exclusive`.
+
+    Nothing half-written is ever left: a failed write removes what it created.  The temporary
+    file of a replacement has a random name and is created exclusively, so a link planted in
+    a shared directory is never followed.
+    """
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        if exclusive:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            target = path
-        else:
-            target = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            os.write(fd, body)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+    target = path if exclusive else path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
+    try:
+        fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise ConfigError(f"{path} exists already; not overwriting a key (use --force)") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(body)
+            out.flush()
+            os.fsync(out.fileno())
         if target != path:
             os.replace(target, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            target.unlink()
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+    try:
         dfd = os.open(path.parent, os.O_RDONLY)
         try:
             os.fsync(dfd)
         finally:
             os.close(dfd)
-    except FileExistsError:
-        raise ConfigError(f"{path} exists already; not overwriting a key (use --force)") from None
-    except OSError as exc:
+    except OSError as exc:  # the file is complete; only its name may not be durable yet
         raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 

@@ -290,3 +290,41 @@ def test_save_keyring_keeps_the_install_times_of_keys_it_keeps(
     keystore.keyring_path(tmp_path).write_text("{")
     keystore.save_keyring(tmp_path, Keyring.of([K2]))
     assert keystore.load(tmp_path).installed == {k2: 50.0}
+
+
+def test_a_failed_write_leaves_no_half_written_key(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "fleet.key"
+
+    def disk_full(fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(keystore.os, "fsync", disk_full)
+        with pytest.raises(ConfigError, match=f"cannot write {path}: No space left on device"):
+            keystore.generate_key_file(path)
+    assert list(tmp_path.iterdir()) == []  # so trying again needs no --force
+    kid = keystore.generate_key_file(path)
+    with monkeypatch.context() as m:
+        m.setattr(keystore.os, "fsync", disk_full)
+        with pytest.raises(ConfigError, match="No space left"):
+            keystore.generate_key_file(path, force=True)
+        with pytest.raises(SdfrError, match="keyring: cannot write"):
+            keystore.save(tmp_path, StoredKeyring(Keyring.of([K1])))
+    # The old key is intact, and no temporary file is left behind.
+    assert auth.key_id(keystore.read_key_file(path)) == kid
+    assert [p.name for p in tmp_path.iterdir()] == ["fleet.key"]
+
+
+def test_a_replacement_never_follows_a_planted_link(tmp_path: Path) -> None:
+    """In a directory others can write to, a link where the temporary file might go must
+    not make root overwrite what it points to."""
+    victim = write(tmp_path / "victim", "precious\n", mode=0o644)
+    path = tmp_path / "fleet.key"
+    keystore.generate_key_file(path)
+    for pid in range(os.getpid() - 2, os.getpid() + 3):  # the names a pid-based one would use
+        (tmp_path / f".fleet.key.{pid}.tmp").symlink_to(victim)
+    kid = keystore.generate_key_file(path, force=True)
+    assert victim.read_text() == "precious\n"
+    assert auth.key_id(keystore.read_key_file(path)) == kid and mode_of(path) == 0o600
