@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -32,7 +33,7 @@ from aiohttp.web_request import BaseRequest
 from sdfr import __version__, auth, keystore, procfs, wire
 from sdfr.config import Config, location_max_len
 from sdfr.errors import ConfigError, ValidationError
-from sdfr.keystore import KeyringError, StoredKeyring
+from sdfr.keystore import KeyringError, KeyringFileError, StoredKeyring
 from sdfr.model import Service
 from sdfr.status import DiscoveryStatus
 from sdfr.store import Op, PeerRecord, StateWriteError, Store, StoreError, write_error
@@ -837,8 +838,29 @@ def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
     }
 
 
+def _keyring_failed(exc: KeyringFileError) -> RequestError:
+    """keyring.json could not be read or written: say so, with the status a state directory
+    problem gets elsewhere (507 full, 503 read-only)."""
+    log.warning("%s", exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return RequestError(507, str(exc), "keyring")
+    if exc.errno == errno.EROFS:
+        return RequestError(503, str(exc), "keyring")
+    return RequestError(500, str(exc), "keyring")
+
+
+def _load_keyring(state: ApiState) -> StoredKeyring:
+    try:
+        return keystore.load(state.cfg.state_dir)
+    except KeyringFileError as exc:
+        raise _keyring_failed(exc) from None
+
+
 def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
-    keystore.save(state.cfg.state_dir, stored)
+    try:
+        keystore.save(state.cfg.state_dir, stored)
+    except KeyringFileError as exc:
+        raise _keyring_failed(exc) from None
     notify_discovery(state.cfg.state_dir)
     ring = stored.keyring
     log.info("keyring: %s; mode %s, signing with %s", what, ring.mode, ring.primary)
@@ -847,7 +869,7 @@ def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
 async def keys_list(request: web.Request) -> web.Response:
     _need_unix_socket(request)
     state = _state(request)
-    return _json_response(_keys_json(state, keystore.load(state.cfg.state_dir)))
+    return _json_response(_keys_json(state, _load_keyring(state)))
 
 
 async def _one_text_field(request: web.Request, name: str, shape: str) -> str:
@@ -867,7 +889,7 @@ async def keys_install(request: web.Request) -> web.Response:
         key = keystore.parse_key(text, "key")
     except ConfigError as exc:
         raise ValidationError("key", str(exc).removeprefix("key: ")) from None
-    stored, added = keystore.install(keystore.load(state.cfg.state_dir), key, time.time())
+    stored, added = keystore.install(_load_keyring(state), key, time.time())
     kid = auth.key_id(key)
     if added:
         _save_keyring(state, stored, f"key {kid} installed")
@@ -879,7 +901,7 @@ async def keys_use(request: web.Request) -> web.Response:
     _need_unix_socket(request)
     state = _state(request)
     kid = request.match_info["id"]
-    stored = keystore.use(keystore.load(state.cfg.state_dir), kid)
+    stored = keystore.use(_load_keyring(state), kid)
     _save_keyring(state, stored, f"signing with key {kid}")
     return _json_response(_keys_json(state, stored))
 
@@ -888,7 +910,7 @@ async def keys_remove(request: web.Request) -> web.Response:
     _need_unix_socket(request)
     state = _state(request)
     kid = request.match_info["id"]
-    stored = keystore.remove(keystore.load(state.cfg.state_dir), kid)
+    stored = keystore.remove(_load_keyring(state), kid)
     _save_keyring(state, stored, f"key {kid} removed")
     return web.Response(status=204)
 
@@ -897,7 +919,7 @@ async def keys_mode(request: web.Request) -> web.Response:
     _need_unix_socket(request)
     state = _state(request)
     mode = await _one_text_field(request, "mode", '"accept" | "sign" | "enforce"')
-    stored = keystore.set_mode(keystore.load(state.cfg.state_dir), mode)
+    stored = keystore.set_mode(_load_keyring(state), mode)
     _save_keyring(state, stored, f"mode {mode}")
     return _json_response(_keys_json(state, stored))
 
@@ -1435,8 +1457,20 @@ def openapi_document() -> dict[str, Any]:
             }
         },
     }
-    for ops in paths.values():
-        for op in ops.values():
+    keyring_errors = {
+        "500": {
+            **_ERROR,
+            "description": "STATE_DIR/keyring.json cannot be read or written (damaged, "
+            "unreadable); `field` is keyring and the error names the file",
+        },
+        "503": {**_ERROR, "description": "The state directory is read-only"},
+        "507": {**_ERROR, "description": "The state directory is full"},
+    }
+    for path, ops in paths.items():
+        for method, op in ops.items():
+            if path.startswith("/keys"):  # a GET only reads the keyring
+                errors = keyring_errors if method != "get" else {"500": keyring_errors["500"]}
+                op["responses"].update(errors)
             op["responses"].setdefault("403", _DOORS)
             op["responses"].setdefault("405", _ERROR)
             op["responses"].setdefault("500", _ERROR)

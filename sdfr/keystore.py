@@ -45,6 +45,21 @@ class KeyringError(SdfrError):
         self.field = field
 
 
+class KeyringFileError(SdfrError):
+    """STATE_DIR/keyring.json cannot be read, written or understood; `errno` when the
+    system said why (ENOSPC: the disk is full, EROFS: it is read-only)."""
+
+    def __init__(self, message: str, errno: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno
+
+
+class _WriteFailed(ConfigError):
+    def __init__(self, path: Path, exc: OSError) -> None:
+        super().__init__(f"cannot write {path}: {exc.strerror or exc}")
+        self.errno = exc.errno
+
+
 # -- key files -------------------------------------------------------------------------------
 
 
@@ -115,14 +130,14 @@ def _write_private(path: Path, body: bytes, *, exclusive: bool) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise _WriteFailed(path, exc) from None
     target = path if exclusive else path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
     try:
         fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except FileExistsError:
         raise ConfigError(f"{path} exists already; not overwriting a key (use --force)") from None
     except OSError as exc:
-        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise _WriteFailed(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as out:
             out.write(body)
@@ -133,7 +148,7 @@ def _write_private(path: Path, body: bytes, *, exclusive: bool) -> None:
     except OSError as exc:
         with contextlib.suppress(OSError):
             target.unlink()
-        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise _WriteFailed(path, exc) from None
     try:
         dfd = os.open(path.parent, os.O_RDONLY)
         try:
@@ -141,7 +156,7 @@ def _write_private(path: Path, body: bytes, *, exclusive: bool) -> None:
         finally:
             os.close(dfd)
     except OSError as exc:  # the file is complete; only its name may not be durable yet
-        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise _WriteFailed(path, exc) from None
 
 
 # -- the keyring in the state directory ------------------------------------------------------
@@ -179,7 +194,9 @@ def load(state_dir: Path) -> StoredKeyring:
     except FileNotFoundError:
         return StoredKeyring()
     except OSError as exc:
-        raise SdfrError(f"keyring: cannot read {path}: {exc.strerror or exc}") from None
+        raise KeyringFileError(
+            f"keyring: cannot read {path}: {exc.strerror or exc}", exc.errno
+        ) from None
     try:
         obj = json.loads(text)
         if not isinstance(obj, dict) or obj.get("version") != FORMAT_VERSION:
@@ -199,7 +216,7 @@ def load(state_dir: Path) -> StoredKeyring:
                 installed[kid] = float(item["installed"])
         ring = Keyring(keys, obj.get("primary") if keys else None, mode)
     except (ValueError, KeyError, TypeError, ConfigError) as exc:
-        raise SdfrError(
+        raise KeyringFileError(
             f"keyring: {path} is damaged ({exc}); restore it, or remove it and start sdfrd "
             "with key_file"
         ) from None
@@ -217,7 +234,7 @@ def save(state_dir: Path, stored: StoredKeyring) -> None:
     try:
         _write_private(keyring_path(state_dir), body, exclusive=False)
     except ConfigError as exc:
-        raise SdfrError(f"keyring: {exc}") from None
+        raise KeyringFileError(f"keyring: {exc}", getattr(exc, "errno", None)) from None
 
 
 def save_keyring(
@@ -232,7 +249,7 @@ def save_keyring(
     if installed is None:
         try:
             before = load(state_dir).installed
-        except SdfrError:  # a damaged keyring is being replaced: no times to keep
+        except KeyringFileError:  # a damaged keyring is being replaced: no times to keep
             before = {}
         now = time.time()
         installed = {kid: before.get(kid, now) for kid in keyring.keys}

@@ -904,6 +904,55 @@ async def test_the_keyring_over_the_unix_socket(
     assert not any(b64[k1] in b or b64[k2] in b for b in bodies)  # never key material
 
 
+@aio
+async def test_a_keyring_that_cannot_be_read_or_written_is_named(
+    cfg: Config,
+    store: Store,
+    tmp_path_factory: pytest.TempPathFactory,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    sock = tmp_path_factory.mktemp("s") / "api.sock"
+    key = base64.b64encode(bytes(range(32))).decode()
+    path = keystore.keyring_path(cfg.state_dir)
+    async with over_unix_socket(create_app(cfg, store), sock) as s:
+
+        async def call(method: str, url: str, body: Any = None) -> tuple[int, Any]:
+            r = await s.request(method, f"http://localhost{url}", json=body)
+            return r.status, await r.json()
+
+        # Damaged: every call says which file and what to do, none overwrites it.
+        path.write_text('{"version": 1, "mode": "enforce", "keys": 7}')
+        for method, url, body in (
+            ("GET", "/keys", None),
+            ("POST", "/keys", {"key": key}),
+            ("PUT", "/keys/mode", {"mode": "sign"}),
+            ("POST", "/keys/0a0b0c0d/use", None),
+            ("DELETE", "/keys/0a0b0c0d", None),
+        ):
+            code, err = await call(method, url, body)
+            assert code == 500 and err["field"] == "keyring", (method, url)
+            assert str(path) in err["error"] and "damaged" in err["error"]
+        assert path.read_text() == '{"version": 1, "mode": "enforce", "keys": 7}'
+        path.unlink()
+        # A full disk and a read-only one, as the state directory's other writes report them.
+        for code_, errno_, says in (
+            (507, errno.ENOSPC, "No space"),
+            (503, errno.EROFS, "Read-only"),
+        ):
+
+            def refuse(target: Path, body: bytes, *, exclusive: bool, e: int = errno_) -> None:
+                raise keystore._WriteFailed(target, OSError(e, os.strerror(e)))
+
+            with monkeypatch.context() as m:
+                m.setattr(keystore, "_write_private", refuse)
+                code, err = await call("POST", "/keys", {"key": key})
+            assert code == code_ and err["field"] == "keyring" and says in err["error"]
+            assert str(path) in err["error"]
+            assert not path.exists()
+        # Once it can be written, the same call works.
+        assert (await call("POST", "/keys", {"key": key}))[0] == 201
+
+
 # -- the doors: who may knock, and what every answer looks like ---------------------------------
 
 

@@ -310,8 +310,9 @@ def test_a_failed_write_leaves_no_half_written_key(
         m.setattr(keystore.os, "fsync", disk_full)
         with pytest.raises(ConfigError, match="No space left"):
             keystore.generate_key_file(path, force=True)
-        with pytest.raises(SdfrError, match="keyring: cannot write"):
+        with pytest.raises(keystore.KeyringFileError, match="keyring: cannot write") as err:
             keystore.save(tmp_path, StoredKeyring(Keyring.of([K1])))
+        assert err.value.errno == 28  # the API answers 507 for it
     # The old key is intact, and no temporary file is left behind.
     assert auth.key_id(keystore.read_key_file(path)) == kid
     assert [p.name for p in tmp_path.iterdir()] == ["fleet.key"]
