@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import json
 import logging
 import os
@@ -36,7 +35,15 @@ from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringError, KeyringFileError, StoredKeyring
 from sdfr.model import Service
 from sdfr.status import DiscoveryStatus
-from sdfr.store import Op, PeerRecord, StateWriteError, Store, StoreError, write_error
+from sdfr.store import (
+    Op,
+    PeerRecord,
+    StateWriteError,
+    Store,
+    StoreError,
+    write_error,
+    write_reason,
+)
 from sdfr.wire import check_service_fits
 
 log = logging.getLogger("sdfr.api")
@@ -153,7 +160,7 @@ async def _errors_as_json(request: web.Request, handler: Handler) -> web.StreamR
     except StateWriteError as exc:
         # Nothing was stored: say why, and let /health say it too until a write succeeds.
         _state(request).write_problem = (time.time(), exc.reason, str(exc))
-        return _error(507 if exc.reason == "full" else 503, str(exc), "state_dir")
+        return _error(_cannot_write_status(exc.reason), str(exc), "state_dir")
     except web.HTTPException as exc:
         if exc.status < 400:
             raise
@@ -163,6 +170,11 @@ async def _errors_as_json(request: web.Request, handler: Handler) -> web.StreamR
     except Exception:
         log.exception("%s %s failed", request.method, request.path)
         return _error(500, "internal error; the daemon's log has the details")
+
+
+def _cannot_write_status(reason: str) -> int:
+    """The answer to a write the state directory refused: 507 when it is full, else 503."""
+    return 507 if reason == "full" else 503
 
 
 # -- who may knock -----------------------------------------------------------------------------
@@ -361,17 +373,23 @@ class StoreView:
                 sizes[s.id] = wire.service_json_size(s)
         stored = {s.id for s in services} if self._reserved else set()
         pending = [size for sid, size in self._reserved.values() if sid not in stored]
+        sizes[extra.id] = wire.service_json_size(extra)  # (`reserving` takes it from here)
         return wire.parts_needed(
-            [*(sizes[s.id] for s in services), *pending, wire.service_json_size(extra)],
+            [*(sizes[s.id] for s in services), *pending, sizes[extra.id]],
             robot_id=self._robot_id,
             location_len=self._location_len,
         )
 
     @contextlib.contextmanager
     def reserving(self, service: Service) -> Iterator[None]:
-        """Count `service` in `parts_with` until it is stored (or refused)."""
+        """Count `service` (just checked by `parts_with`) in `parts_with` until it is stored
+        (or refused)."""
         key = object()
-        self._reserved[key] = (service.id, wire.service_json_size(service))
+        size = self._sizes.get(service.id)
+        self._reserved[key] = (
+            service.id,
+            wire.service_json_size(service) if size is None else size,
+        )
         try:
             yield
         finally:
@@ -718,16 +736,16 @@ async def self_info(request: web.Request) -> web.Response:
     state = _state(request)
     disc = state.discovery()
     version, services = state.view.local()
-    s = disc.status
+    rec = disc.status
     return _json_response(
         {
-            "robot_id": state.cfg.robot_id or (None if s is None else s.robot_id),
+            "robot_id": state.cfg.robot_id or (None if rec is None else rec.robot_id),
             "fleet": state.cfg.fleet,
             "iface": state.cfg.iface,
-            "address": "" if s is None else s.address,
-            "boot_id": None if s is None else s.boot_id,
+            "address": "" if rec is None else rec.address,
+            "boot_id": None if rec is None else rec.boot_id,
             "version": version,
-            "location": None if s is None else s.location,
+            "location": None if rec is None else rec.location,
             "software": f"sdfr/{__version__}",
             "services": [s.to_json() for s in services],
             "discovery": _discovery_json(disc),
@@ -820,12 +838,11 @@ def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
     ring = stored.keyring
     status = state.discovery().status
     received = {} if status is None else status.auth.received
-    interop = state.cfg.ssdp_interop
     return {
         "mode": ring.mode if ring.keyed else "open",
         "primary": ring.primary,
         "keyed": ring.keyed,
-        "ssdp_interop": interop == "on" or (interop == "auto" and not ring.keyed),
+        "ssdp_interop": auth.plain_ssdp_answered(state.cfg.ssdp_interop_wanted, ring),
         "keys": [
             {
                 "id": kid,
@@ -840,13 +857,11 @@ def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
 
 def _keyring_failed(exc: KeyringFileError) -> RequestError:
     """keyring.json could not be read or written: say so, with the status a state directory
-    problem gets elsewhere (507 full, 503 read-only)."""
+    problem gets elsewhere (507 full, 503 read-only), and 500 for a damaged file."""
     log.warning("%s", exc)
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return RequestError(507, str(exc), "keyring")
-    if exc.errno == errno.EROFS:
-        return RequestError(503, str(exc), "keyring")
-    return RequestError(500, str(exc), "keyring")
+    reason = write_reason(exc.errno)
+    status = 500 if reason == "error" else _cannot_write_status(reason)
+    return RequestError(status, str(exc), "keyring")
 
 
 def _load_keyring(state: ApiState) -> StoredKeyring:

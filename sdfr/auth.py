@@ -135,6 +135,12 @@ class Keyring:
 OPEN = Keyring()
 
 
+def plain_ssdp_answered(wanted: bool | None, keyring: Keyring) -> bool:
+    """Whether plain SSDP clients get the read-only ssdp:all answer: as configured
+    (`ssdp_interop` on/off), or, when it is auto (None), only while the fleet has no key."""
+    return not keyring.keyed if wanted is None else wanted
+
+
 @dataclass(frozen=True, slots=True)
 class Sealed:
     """A datagram whose seal checked out: the key it was sealed with and its counter."""

@@ -60,6 +60,11 @@ class Config:
     api_allowed_origins: tuple[str, ...] = ()
 
     @property
+    def ssdp_interop_wanted(self) -> bool | None:
+        """`ssdp_interop` as the protocol takes it: on True, off False, auto None."""
+        return {"on": True, "off": False}.get(self.ssdp_interop)
+
+    @property
     def effective_ping_interval(self) -> float:
         return self.ping_interval if self.ping_interval is not None else self.beacon_interval
 

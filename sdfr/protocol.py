@@ -555,8 +555,7 @@ class Core:
 
     @property
     def ssdp_interop(self) -> bool:
-        wanted = self.config.ssdp_interop
-        return not self.keyring.keyed if wanted is None else wanted
+        return auth.plain_ssdp_answered(self.config.ssdp_interop, self.keyring)
 
     # -- trust -----------------------------------------------------------------------------
 

@@ -107,15 +107,25 @@ class StateWriteError(StoreError):
         self.reason = reason
 
 
+def write_reason(code: int | None, text: str = "") -> str:
+    """Why a write failed, from its errno or (SQLite says it in words) its message: full,
+    read-only or error."""
+    text = text.lower()
+    if code in (errno.ENOSPC, errno.EDQUOT) or "full" in text:
+        return "full"
+    if code == errno.EROFS or "readonly" in text or "read-only" in text:
+        return "read-only"
+    return "error"
+
+
 def write_error(where: Path, exc: BaseException) -> StateWriteError:
     """A write failure, classified: a full disk, a read-only one, or something else."""
-    text = str(exc).lower()
-    code = getattr(exc, "errno", None)
-    if code == errno.ENOSPC or "full" in text or code == errno.EDQUOT:
-        return StateWriteError("full", f"the state directory {where} is full ({exc})")
-    if code == errno.EROFS or "readonly" in text or "read-only" in text:
-        return StateWriteError("read-only", f"the state directory {where} is read-only ({exc})")
-    return StateWriteError("error", f"cannot write the state directory {where}: {exc}")
+    reason = write_reason(getattr(exc, "errno", None), str(exc))
+    if reason == "full":
+        return StateWriteError(reason, f"the state directory {where} is full ({exc})")
+    if reason == "read-only":
+        return StateWriteError(reason, f"the state directory {where} is read-only ({exc})")
+    return StateWriteError(reason, f"cannot write the state directory {where}: {exc}")
 
 
 #: A write of local registrations: ("add", Service) or ("remove", service id).

@@ -133,9 +133,7 @@ class _StatusListener:
         while True:
             try:
                 data = self.sock.recv(1 << 20)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
+            except OSError:  # nothing more to read now (or the socket went away)
                 return
             self.state.take_status(data)
 

@@ -39,7 +39,6 @@ STATUS_PERIOD = 1.0
 CONTROL_NAME = "discovery.sock"
 #: Failures of the layer's callbacks within this many seconds make /health say "failing".
 ERROR_WINDOW = 60.0
-_INTEROP = {"auto": None, "on": True, "off": False}
 
 
 def open_multicast_socket(cfg: Config, iface: str) -> socket.socket:
@@ -78,12 +77,12 @@ class DiscoveryLayer:
         self.started = time.time()
         self.boot_id = store.next_boot_id(time.time())
         version, services = store.local_state()
-        self.keyring_path = cfg.state_dir / keystore.KEYRING_NAME
+        self.keyring_path = keystore.keyring_path(cfg.state_dir)
         self._keyring_stamp = self._stamp()
         keyring = keystore.load_keyring(cfg.state_dir)
         self._errors: deque[float] = deque()
         self._last_error: tuple[float, str] | None = None
-        self._conflict_logged: tuple[str, int, float] | None = None  # address, boot, when
+        self._conflict_logged = 0  # the conflict's datagram count when last logged
         self.address = netif.ipv4(self.iface) or ""
         self.core = Core(
             CoreConfig(
@@ -96,7 +95,7 @@ class DiscoveryLayer:
                 reply_delay_max=cfg.reply_delay_max,
                 group=cfg.group,
                 port=cfg.port,
-                ssdp_interop=_INTEROP[cfg.ssdp_interop],
+                ssdp_interop=cfg.ssdp_interop_wanted,
             ),
             boot_id=self.boot_id,
             rng=random.Random(),
@@ -318,8 +317,7 @@ class DiscoveryLayer:
         except Exception as exc:
             now = time.time()
             self._errors.append(now)
-            while self._errors and self._errors[0] < now - ERROR_WINDOW:
-                self._errors.popleft()
+            self._recent_errors(now)
             message = f"{what} failed: {type(exc).__name__}: {exc}"
             if self._last_error is None or self._last_error[1] != message:
                 log.exception("%s", message)  # each new failure once, with its traceback
@@ -506,14 +504,11 @@ class DiscoveryLayer:
         return self._description_cache[1]
 
     def _log_conflict(self) -> None:
-        """Say so when another sender claims our robot id: at once, then once a minute."""
+        """Say so while another sender claims our robot id (the log's RepeatFilter writes it
+        once a minute at most)."""
         c = self.core.conflict
-        if c is None:
-            return
-        now = time.monotonic()
-        last = self._conflict_logged
-        if last is None or last[:2] != (c.address, c.boot_id) or now - last[2] >= 60.0:
-            self._conflict_logged = (c.address, c.boot_id, now)
+        if c is not None and c.count != self._conflict_logged:
+            self._conflict_logged = c.count
             log.warning(
                 "another sender claims robot id %s: %s (boot %d, %d datagrams so far); two "
                 "daemons with one id fight over it: give each its own --robot-id",
@@ -596,13 +591,16 @@ class DiscoveryLayer:
             return None
         return status.Conflict(c.address, c.boot_id, c.last_seen + self.clock_offset, c.count)
 
-    def _error_status(self) -> status.Errors:
-        now = time.time()
+    def _recent_errors(self, now: float) -> int:
+        """Callback failures within the last ERROR_WINDOW (older ones are forgotten)."""
         while self._errors and self._errors[0] < now - ERROR_WINDOW:
             self._errors.popleft()
+        return len(self._errors)
+
+    def _error_status(self) -> status.Errors:
         last = self._last_error
         return status.Errors(
-            recent=len(self._errors),
+            recent=self._recent_errors(time.time()),
             last=None if last is None else last[1],
             last_at=None if last is None else last[0],
             # Not a crash, but as bad: the fleet cannot see our services.
