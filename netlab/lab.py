@@ -176,9 +176,7 @@ class Lab:
                     self.workdir.mkdir(parents=True, exist_ok=True)
             record.workdir = str(self.workdir)
             self._other_labs_entries = sum(
-                hostlimits.mesh_entries(len(other.robots))
-                for other in map(manifest.load, manifest.names())
-                if other is not None and other.name != self.name
+                hostlimits.mesh_entries(len(other.robots)) for other in manifest.others(self.name)
             )
             record.namespaces.append(self.medium.ns)
             manifest.save(record)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -90,28 +91,44 @@ class Manifest:
 
 
 def claim(manifest: Manifest) -> Path:
-    """Create the manifest, or raise LabExistsError if a lab of that name is up."""
+    """Create the manifest, or raise LabExistsError if a lab of that name is up.
+
+    The whole file is written under a private name first and then hard-linked into
+    place: the link fails if the name is taken, and a reader (another lab counting
+    its neighbours, `netlab status`) never sees an empty or half-written manifest.
+    """
     path = path_of(manifest.name)
     with kernel_errors(f"creating {run_dir()}"):
         run_dir().mkdir(parents=True, exist_ok=True)
+    tmp = _private(path)
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    except FileExistsError:
-        raise LabExistsError(
-            f"lab {manifest.name!r} is already up (manifest {path}); `netlab status "
-            f"{manifest.name}` shows it, `netlab down {manifest.name}` removes it"
-        ) from None
-    except OSError as exc:
-        raise KernelError(describe(exc, f"creating {path}"), exc.errno) from exc
-    with os.fdopen(fd, "w") as f:
-        json.dump(manifest.to_json(), f, indent=1)
+        with kernel_errors(f"writing {tmp}"):
+            tmp.write_text(json.dumps(manifest.to_json(), indent=1))
+            tmp.chmod(0o644)
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise LabExistsError(
+                f"lab {manifest.name!r} is already up (manifest {path}); `netlab status "
+                f"{manifest.name}` shows it, `netlab down {manifest.name}` removes it"
+            ) from None
+        except OSError as exc:
+            raise KernelError(describe(exc, f"creating {path}"), exc.errno) from exc
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
     return path
+
+
+def _private(path: Path) -> Path:
+    """A name no other writer uses (process and thread), hidden from names()."""
+    return path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
 
 
 def save(manifest: Manifest) -> None:
     """Replace the manifest atomically (a reader never sees half a file)."""
     path = path_of(manifest.name)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = _private(path)
     with kernel_errors(f"writing {path}"):
         tmp.write_text(json.dumps(manifest.to_json(), indent=1))
         tmp.replace(path)
@@ -145,3 +162,20 @@ def names() -> list[str]:
     with contextlib.suppress(FileNotFoundError):
         return sorted(p.stem for p in run_dir().glob("*.json") if not p.name.startswith("."))
     return []
+
+
+def others(name: str) -> list[Manifest]:
+    """The readable manifests of labs other than `name`.
+
+    Another lab's record is not ours to judge: one that is gone or damaged by the
+    time it is read is left out (`netlab status` names a damaged one), never an error here.
+    """
+    found = []
+    for other in names():
+        if other == name:
+            continue
+        with contextlib.suppress(NetlabError):
+            record = load(other)
+            if record is not None:
+                found.append(record)
+    return found
