@@ -45,7 +45,7 @@ from netlab.errors import (
 )
 from netlab.manifest import Manifest, ProcRecord, RobotRecord
 from netlab.medium import Medium
-from netlab.mobility import MobilityModel
+from netlab.mobility import MobilityModel, walk
 from netlab.ranges import Links, Pos, RangeModel, Topology, with_link_loss
 from netlab.shaping import LinkShape
 from sdfr.client import Client
@@ -414,23 +414,17 @@ class Lab:
     ) -> list[tuple[float, Links]]:
         """Move the model's robots every `step` seconds for `duration`; the links at each step."""
         self._check_up()
-        if step <= 0 or duration < 0:
-            raise ValueError(f"need step > 0 and duration >= 0, got {step}, {duration}")
         for name in model.robots:
             self.robot(name)
         timeline: list[tuple[float, Links]] = []
-        t0 = clock()
-        k = 0
-        while k * step <= duration + 1e-9:
-            t = k * step
+
+        def apply(t: float, positions: dict[str, Pos]) -> None:
             with self.batch():
-                for name, pos in model.positions_at(t).items():
+                for name, pos in positions.items():
                     self.topology.move(name, pos)
             timeline.append((t, self.links()))
-            k += 1
-            wait = t0 + k * step - clock()
-            if wait > 0 and k * step <= duration + 1e-9:
-                sleep(wait)
+
+        walk(model, duration, step, apply, clock=clock, sleep=sleep)
         return timeline
 
     # -- shaping -------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import bisect
 import random
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -113,3 +113,27 @@ class RandomWaypoint:
         if t < 0:
             raise ValueError(f"t must be >= 0, got {t}")
         return {name: self._tracks[name].at(t) for name in self.robots}
+
+
+def walk(
+    model: MobilityModel,
+    duration: float,
+    tick: float,
+    apply: Callable[[float, dict[str, Pos]], None],
+    *,
+    clock: Callable[[], float],
+    sleep: Callable[[float], None],
+) -> int:
+    """Apply the model's positions at t = 0, tick, 2 tick, ... <= duration, each on time by
+    `clock` (late ticks are not made up for by skipping: each is applied); the ticks done."""
+    if tick <= 0 or duration < 0:
+        raise ValueError(f"need tick > 0 and duration >= 0, got {tick}, {duration}")
+    t0 = clock()
+    k = 0
+    while k * tick <= duration + 1e-9:
+        apply(k * tick, model.positions_at(k * tick))
+        k += 1
+        wait = t0 + k * tick - clock()
+        if wait > 0 and k * tick <= duration + 1e-9:
+            sleep(wait)
+    return k

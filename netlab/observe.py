@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from netlab.analysis import natural_order
+from netlab.clock import REAL, Clock
 from netlab.report import AgreementSample, ConnectivitySample
 from sdfr.errors import ApiError
 
@@ -287,14 +288,15 @@ class Sample:
 
 
 class Observer:
-    """Samples the running robots' neighbour lists every `period` seconds, in a thread."""
+    """Samples the running robots' neighbour lists every `period` seconds of `clock` (in a
+    thread with the real clock; as virtual time passes with a `VirtualClock`)."""
 
     def __init__(
         self,
         probe: Probe,
         truth: TruthLog,
         period: float = 0.25,
-        clock: Callable[[], float] = time.time,
+        clock: Clock = REAL,
     ) -> None:
         if period <= 0:
             raise ValueError(f"period must be positive, not {period}")
@@ -304,18 +306,17 @@ class Observer:
         self._clock = clock
         self._samples: list[Sample] = []
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="netlab-observer", daemon=True)
+        self._cancel: Callable[[], None] | None = None
 
     def start(self) -> Observer:
-        self._thread.start()
+        self._cancel = self._clock.every(self.period, self.sample)
         return self
 
     def stop(self) -> list[Sample]:
         """Stop sampling (idempotent); the samples taken."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join()
+        if self._cancel is not None:
+            self._cancel()
+            self._cancel = None
         self.probe.close()
         return self.samples
 
@@ -324,19 +325,19 @@ class Observer:
         with self._lock:
             return list(self._samples)
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.period):
-            t = self._clock()
-            running = natural_order(list(self.truth.now().running))
-            views = self.probe.neighbours(running)
-            seen = {a: v.reachable for a, v in views.items() if v.error is None}
-            indicators = {
-                a: {e.robot_id: e.indicator for e in v.entries if e.indicator is not None}
-                for a, v in views.items()
-                if v.error is None
-            }
-            with self._lock:
-                self._samples.append(Sample(t, seen, indicators))
+    def sample(self) -> None:
+        """Take one sample now."""
+        t = self._clock.time()
+        running = natural_order(list(self.truth.now().running))
+        views = self.probe.neighbours(running)
+        seen = {a: v.reachable for a, v in views.items() if v.error is None}
+        indicators = {
+            a: {e.robot_id: e.indicator for e in v.entries if e.indicator is not None}
+            for a, v in views.items()
+            if v.error is None
+        }
+        with self._lock:
+            self._samples.append(Sample(t, seen, indicators))
 
 
 # ---------------------------------------------------------------------------------------------

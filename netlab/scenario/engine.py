@@ -1,0 +1,533 @@
+"""The engine: one run of a scenario against a lab, in the backend's time.
+
+`run()` makes the run folder and a `Run`; `Run.execute` brings the lab up, starts the captures
+and the observer, walks the timeline (each action step through `actions.ACTIONS`, each check
+through `judges`), takes everything down, and writes the run folder.  It reads time only
+through `backend.clock`, so a fake lab and a `netlab.clock.VirtualClock` run a whole scenario
+in an instant.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from netlab import naming, procstat
+from netlab.analysis import count_updates, read_run
+from netlab.errors import NetlabError
+from netlab.observe import Observer, Probe, Sample, TruthLog, TruthState, indicators_before
+from netlab.ranges import UnitDisc
+from netlab.scenario.actions import ACTIONS
+from netlab.scenario.backend import Backend, LabSpec
+from netlab.scenario.conditions import Agreement, Resources, Updates
+from netlab.scenario.judges import AFTER_POLL, EVALUATORS, JUDGES
+from netlab.scenario.model import Scenario, reference, step_ref
+from netlab.scenario.results import CheckResult, RunResult
+from netlab.scenario.runfolder import new_run_dir, save_run, write_report
+from netlab.scenario.spec import Bad, Robots, Span, StepError, seconds
+from netlab.scenario.steps import Check, Start, twin_mac
+from sdfr.errors import ApiError
+
+PRODUCT_BEACON = 10.0
+
+
+class Run:
+    """One run of a scenario: the lab, the captures, the observer, the timeline, the report.
+
+    What the step and condition functions use: `lab`, `sc`, `ctx`, `clock`, `quick`, `probe`,
+    `observer`, `truth`, `running` (robots whose daemon runs, in start order), `services`
+    (robot -> service name -> id this run published), `windows` (step -> wall-clock start,
+    end), `usage`, `pending`, and the helpers below.
+    """
+
+    def __init__(
+        self,
+        sc: Scenario,
+        backend: Backend,
+        run_dir: Path,
+        lab_name: str,
+        quick: bool,
+        say: Callable[[str], None],
+    ) -> None:
+        self.sc = sc
+        self.ctx = sc._ctx()
+        self.backend = backend
+        self.clock = backend.clock
+        self.run_dir = run_dir
+        self.quick = quick
+        self._say = say
+        spec = LabSpec(lab_name, sc.seed, sc.fleet, UnitDisc(sc.radius), sc.addressing)
+        self.lab = backend.make_lab(spec)
+        self.truth = TruthLog(clock=self.clock.time)
+        self.running: list[str] = []
+        self.services: dict[str, dict[str, str]] = {n: {} for n in sc.names}
+        self.windows: dict[int, tuple[float, float]] = {}
+        self.checks: list[CheckResult] = []
+        self.pending: list[tuple[CheckResult, Updates, float, float]] = []
+        self.error: str | None = None
+        self.t0 = self.clock.monotonic()
+        self.event = self.t0  # end of the last action step
+        self._probe: Probe | None = None
+        self._observer: Observer | None = None
+        self.samples: list[Sample] = []
+        self.captured = False
+        self.wall = (self.clock.time(), self.clock.time())
+        self.action_wall = self.clock.time()  # start of the last action step (wall clock)
+        self._baseline: tuple[float, dict[str, dict[str, float]]] | None = None
+        #: Steps whose window a resources check measures -> readings at its start and end.
+        self.measured = {
+            reference(sc.steps, i, s.condition.over)
+            for i, s in enumerate(sc.steps, 1)
+            if isinstance(s, Check) and isinstance(s.condition, Resources)
+        }
+        self.usage: dict[int, tuple[dict[str, Any], dict[str, Any]]] = {}
+
+    # -- what steps and judges use -------------------------------------------------------------
+
+    @property
+    def probe(self) -> Probe:
+        if self._probe is None:
+            raise AssertionError("the run's probe is made when the lab is up")
+        return self._probe
+
+    @property
+    def observer(self) -> Observer:
+        if self._observer is None:
+            raise AssertionError("the run's observer is made when the lab is up")
+        return self._observer
+
+    def say(self, text: str) -> None:
+        self._say(f"  {self.elapsed():7.2f} s  {text}")
+
+    def elapsed(self) -> float:
+        """Seconds since the run began."""
+        return self.clock.monotonic() - self.t0
+
+    def seconds(self, span: Span) -> float:
+        return seconds(span, self.sc.beacon)
+
+    def names(self, sel: Robots) -> tuple[str, ...]:
+        return self.ctx.robots(sel, self.running)
+
+    def running_of(self, sel: Robots | None) -> list[str]:
+        """The robots `sel` names whose daemon runs (None: every running robot)."""
+        if sel is None:
+            return list(self.running)
+        running = set(self.running)
+        return [r for r in self.names(sel) if r in running]
+
+    def options(self, step: Start | None = None) -> dict[str, Any]:
+        """sdfrd's options for a start: the scenario's beacon and [sdfrd], the step's own."""
+        return {
+            "beacon_interval": self.sc.beacon,
+            **self.sc.sdfrd,
+            **(step.options if step is not None else {}),
+        }
+
+    def text(self, names: Sequence[str]) -> str:
+        if len(names) > 2 and set(names) == set(self.sc.names):
+            return f"all {len(names)}"
+        return ", ".join(names)
+
+    def record_truth(self) -> TruthState:
+        # A robot's own link loss can add up to 100 %: no datagram passes, so no link.
+        links = [pair for pair, loss in self.lab.links().items() if loss < 100.0]
+        return self.truth.record(links, self.running)
+
+    def gone(self, name: str) -> None:
+        if name in self.running:
+            self.running.remove(name)
+        self.record_truth()
+
+    def need_running(self, name: str, what: str) -> None:
+        if name not in self.running:
+            raise StepError(f"cannot {what} on {name}: its sdfrd is not running")
+
+    def indicators_before_last_step(self) -> dict[str, dict[str, float]]:
+        """Each robot's indicators in the last samples before the last action step began,
+        worked out once per step (a polled check asks again and again)."""
+        if self._baseline is None or self._baseline[0] != self.action_wall:
+            seen = indicators_before(self.observer.samples, self.action_wall)
+            self._baseline = (self.action_wall, seen)
+        return self._baseline[1]
+
+    # -- the run -------------------------------------------------------------------------------
+
+    def execute(self, *, report: bool) -> RunResult:
+        start_wall = self.clock.time()
+        self.t0 = self.clock.monotonic()
+        captures: list[Any] = []
+        try:
+            self.lab.up()
+        except NetlabError as exc:
+            self.say(f"ERROR {exc}")
+            return RunResult(self.sc.name, "error", self.run_dir, error=str(exc))
+        try:
+            try:
+                self._add_robots()
+                captures = self._start_captures()
+                self._probe = Probe(lambda r: self.backend.connect(self.lab, r))
+                self._observer = Observer(
+                    Probe(lambda r: self.backend.connect(self.lab, r)),
+                    self.truth,
+                    self.sc.sample,
+                    clock=self.clock,
+                ).start()
+                self._timeline()
+            finally:
+                self._teardown(captures)
+        except (NetlabError, ApiError) as exc:
+            self.error = self.error or str(exc)
+            self.say(f"ERROR {exc}")
+        self.wall = (start_wall, self.clock.time())
+        failed = any(c.ok is False for c in self.checks)
+        result = RunResult(
+            self.sc.name,
+            "error" if self.error else "failed" if failed else "passed",
+            self.run_dir,
+            self.checks,
+            error=self.error,
+            robots=len(self.sc.names),
+            beacon=self.sc.beacon,
+            duration=self.elapsed(),
+        )
+        self._finish(result, report)
+        return result
+
+    def _add_robots(self) -> None:
+        t = self.clock.monotonic()
+        positions = self.sc.initial_positions()
+        together = {r: group for group in self.sc.collisions() for r in group}
+        added: set[str] = set()
+        with self.lab.batch():
+            for name in self.sc.names:
+                # The first of a collision gets its own MAC; each other one a twin of it.
+                group = together.get(name, ())
+                first = next((r for r in group if r in added), None)
+                mac = None
+                if first is not None:
+                    mac = twin_mac(self.lab.robot(first).mac, group.index(name))
+                self.lab.add_robot(name, pos=positions[name], mac=mac)
+                added.add(name)
+        self.record_truth()
+        took = self.clock.monotonic() - t
+        n = len(self.sc.names)
+        self.say(f"lab {self.lab.name} up: {n} robots on one medium in {took:.2f} s")
+
+    def _start_captures(self) -> list[Any]:
+        mode = self.sc.capture
+        if mode == "none":
+            return []
+        from netlab.capture import Capture, start_all
+
+        caps: list[Capture] = []
+        if mode in ("all", "medium"):
+            pcap = self.run_dir / "medium.pcap"
+            caps.append(Capture(self.lab.medium.ns, naming.BRIDGE, pcap, label="medium"))
+        if mode in ("all", "robots"):
+            caps += [
+                Capture(
+                    self.lab.robot(n).ns, naming.ROBOT_IFACE, self.run_dir / f"{n}.pcap", label=n
+                )
+                for n in self.sc.names
+            ]
+        t = self.clock.monotonic()
+        start_all(caps)
+        self.captured = True
+        what = {"all": "the medium and every robot", "robots": "every robot"}.get(mode, mode)
+        took = self.clock.monotonic() - t
+        self.say(f"capturing on {what} ({len(caps)} tcpdumps, {took:.2f} s)")
+        return caps
+
+    def _teardown(self, captures: list[Any]) -> None:
+        if self._observer is not None:
+            self.samples = self._observer.stop()
+        if self._probe is not None:
+            self._probe.close()
+        try:
+            if captures:
+                from netlab.capture import CaptureError, stop_all
+
+                try:
+                    stop_all(captures)
+                except CaptureError as exc:
+                    self.say(f"warning: {exc}")
+        finally:
+            self._keep_logs()
+            self.lab.down()
+
+    def _keep_logs(self) -> None:
+        logs = self.run_dir / "logs"
+        for name in self.sc.names:
+            with contextlib.suppress(NetlabError, OSError):
+                src = self.lab.robot(name).log
+                if src.exists():
+                    logs.mkdir(exist_ok=True)
+                    shutil.copyfile(src, logs / f"{name}.log")
+
+    def _timeline(self) -> None:
+        for i, step in enumerate(self.sc.steps, 1):
+            wall = self.clock.time()
+            try:
+                if isinstance(step, Check):
+                    ok = self._check(i, step)
+                else:
+                    self.action_wall = wall
+                    before = self._usage() if i in self.measured else None
+                    self.say(ACTIONS[type(step)](self, step))
+                    self.event = self.clock.monotonic()
+                    if before is not None:
+                        self.usage[i] = (before, self._usage())
+                    ok = True
+            except (NetlabError, ApiError, Bad) as exc:
+                self.error = f"{step_ref(i, step)}: {exc}"
+                self.say(f"ERROR {self.error}")
+                return
+            finally:
+                self.windows[i] = (wall, self.clock.time())
+            if not ok and isinstance(step, Check) and step.fatal:
+                self.say(f"stopping: {step_ref(i, step)} failed and later steps rely on it")
+                return
+
+    def _usage(self) -> dict[str, Any]:
+        """A /proc reading of each running daemon's process tree (empty when the lab cannot
+        tell its daemons' pids)."""
+        pid_of = getattr(self.lab, "daemon_pid", None)
+        if pid_of is None:
+            return {}
+        kids = procstat.children()
+        out: dict[str, Any] = {}
+        for name in self.running:
+            pid = pid_of(name)
+            if pid is not None:
+                out[name] = procstat.Usage.read(procstat.tree(pid, kids))
+        return out
+
+    # -- checks --------------------------------------------------------------------------------
+
+    def _check(self, index: int, step: Check) -> bool:
+        cond = step.condition
+        res = CheckResult(index, cond.kind, step.describe(), step.fatal)
+        self.checks.append(res)
+        judge = JUDGES.get(type(cond))
+        if judge is not None:
+            judge(self, index, cond, res)
+        else:
+            self._poll(step, res)
+            after = AFTER_POLL.get(type(cond))
+            if after is not None:
+                after(self, cond, res)
+        return res.ok is not False
+
+    def _poll(self, step: Check, res: CheckResult) -> None:
+        evaluate = EVALUATORS[type(step.condition)]
+        within = self.seconds(step.within) if step.within is not None else 0.0
+        during = self.seconds(step.during) if step.during is not None else None
+        res.deadline = within if step.within is not None else None
+        res.during = during
+        since = self.event
+        period = min(0.1, max(0.02, within / 20))
+        first = True
+        late: list[str] = []  # what was wrong at the deadline
+        while True:
+            problems = evaluate(self, step.condition)
+            now = self.clock.monotonic()
+            if not problems and (first or now - since <= within):
+                # At a first look after the deadline (earlier checks took that long) it
+                # holds, but since when is not known: say so.
+                res.took = now - since
+                if now - since > within:
+                    res.detail = f"first looked at {now - since:.2f} s, after the deadline"
+                break
+            if now - since > within and not first:
+                res.ok = False
+                res.at = now - self.t0
+                if problems:
+                    res.detail = "; ".join(problems)
+                else:
+                    res.detail = f"held from {now - since:.2f} s; at the deadline: " + "; ".join(
+                        late
+                    )
+                self.say(f"FAIL  {res.description}: not within {within:.2f} s: {res.detail}")
+                return
+            if now - since <= within:
+                late = problems
+            first = False
+            self.clock.sleep(period)
+        if during:
+            held_from = self.clock.monotonic()
+            end = held_from + during
+            while self.clock.monotonic() < end:
+                self.clock.sleep(min(period, max(0.0, end - self.clock.monotonic())))
+                problems = evaluate(self, step.condition)
+                if problems:
+                    res.ok = False
+                    res.at = self.elapsed()
+                    held = self.clock.monotonic() - held_from
+                    res.detail = f"held {held:.2f} of {during:g} s, then: " + "; ".join(problems)
+                    self.say(f"FAIL  {res.description}: {res.detail}")
+                    return
+        res.ok = True
+        res.at = self.elapsed()
+        if step.within is None:
+            res.took = None  # it had to hold from the first look: there is no "when"
+            self.say(f"ok    {res.description}: held {during or 0:g} s")
+        else:
+            kept = f", then held {during:g} s" if during else ""
+            note = f" ({res.detail})" if res.detail else ""
+            self.say(
+                f"ok    {res.description}: {res.took or 0.0:.2f} s (deadline {within:.2f} s)"
+                f"{kept}{note}"
+            )
+
+    # -- after the run -------------------------------------------------------------------------
+
+    def _finish(self, result: RunResult, report: bool) -> None:
+        records = None
+        if self.captured and (self.pending or report):
+            try:
+                records = read_run(self.run_dir)
+            except (NetlabError, OSError, ImportError) as exc:
+                self.say(f"cannot read the captures: {exc}")
+        for res, cond, since, until in self.pending:
+            if records is None:
+                res.detail = "captures could not be read: not judged"
+                continue
+            n = count_updates(records, since=since, until=until)
+            res.ok = n <= cond.at_most
+            res.detail = f"{n} Update datagrams in the window (at most {cond.at_most})"
+            self._say(f"  {'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
+        if result.status == "passed" and any(c.ok is False for c in self.checks):
+            result.status = "failed"
+        lag = self._report_lag()
+        meta = self._meta(result, lag)
+        save_run(self.run_dir, meta, self.samples, self.truth.states())
+        if report:
+            try:
+                result.report = write_report(
+                    self.run_dir, records, self.samples, self.truth.states(), lag, meta
+                )
+            except (NetlabError, OSError, ImportError, ValueError) as exc:
+                self._say(f"  report not written: {exc}")
+        self._say("")
+        for line in result.summary():
+            self._say(line)
+        files = "report.json and plots" if result.report is not None else "no report"
+        kept = "pcaps, " if self.captured else ""
+        self._say(f"run folder: {self.run_dir} ({files}; {kept}run.json, logs/)")
+
+    def _report_lag(self) -> float:
+        for step in self.sc.steps:
+            if isinstance(step, Check) and isinstance(step.condition, Agreement):
+                return self.seconds(step.condition.lag)
+        return self.sc.beacon
+
+    def _meta(self, result: RunResult, lag: float) -> dict[str, Any]:
+        steps = []
+        for i, step in enumerate(self.sc.steps, 1):
+            window = self.windows.get(i)
+            steps.append(
+                {
+                    "step": i,
+                    "kind": step.kind,
+                    "label": step.label,
+                    "start": window[0] if window else None,
+                    "end": window[1] if window else None,
+                }
+            )
+        return {
+            "scenario": self.sc.name,
+            "description": self.sc.description,
+            "file": self.sc.source,
+            "robots": len(self.sc.names),
+            "beacon_interval_s": self.sc.beacon,
+            "quick": self.quick,
+            "status": result.status,
+            "error": result.error,
+            "start": self.wall[0],
+            "end": self.wall[1],
+            "agreement_lag_s": lag,
+            "checks": [c.to_json() for c in self.checks],
+            "steps": steps,
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# Running
+
+
+_lab_counter = itertools.count()
+
+
+def default_lab_name() -> str:
+    """'s' + this process (4 base-36 digits) + a counter: unique on this machine for a while."""
+    return f"s{naming.b36(os.getpid() % 36**4, 4)}{naming.b36(next(_lab_counter) % 36**3)}"
+
+
+def missing_requirements(scenario: Scenario, flags: frozenset[str]) -> str | None:
+    """Why this sdfrd cannot run the scenario (an option it lacks), or None."""
+    missing = sorted(o for o in scenario.sdfrd_options() if o not in flags)
+    if not missing:
+        return None
+    opts = ", ".join("--" + o.replace("_", "-") for o in missing)
+    reason = f"sdfrd has no {opts} option (not in `sdfrd --help`)"
+    if "addressing" in missing:
+        reason += (
+            "; addressing = auto (what makes a collision step collide) needs sdfrd's address "
+            "self-configuration, which this sdfrd does not have yet"
+        )
+    return reason
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+def run(
+    scenario: Scenario,
+    *,
+    lab_name: str | None = None,
+    run_dir: Path | None = None,
+    runs: Path = Path("runs"),
+    quick: bool = False,
+    capture: str | None = None,
+    report: bool = True,
+    say: Callable[[str], None] = _say,
+    backend: Backend | None = None,
+) -> RunResult:
+    """Run `scenario` on a new lab (always taken down); progress goes to `say`.
+
+    The run folder is `run_dir`, or a new ``runs/<name>-<time>``.  `quick` uses the steps'
+    `quick` durations; `capture` overrides the scenario's.  Skipped (status "skipped", with
+    the reason said) when sdfrd lacks an option the scenario needs.
+    """
+    backend = backend or Backend()
+    if capture is not None:
+        scenario = replace(scenario, capture=capture)
+    if not backend.can_capture:
+        scenario = replace(scenario, capture="none")
+    head = (
+        f"scenario {scenario.name}: {len(scenario.names)} robots, beacon {scenario.beacon:g} s"
+        f"{' (the product default is 10 s)' if scenario.beacon != PRODUCT_BEACON else ''}"
+    )
+    reason = missing_requirements(scenario, backend.flags())
+    if reason is not None:
+        say(f"{head}\n  SKIPPED: {reason}")
+        return RunResult(
+            scenario.name,
+            "skipped",
+            reason=reason,
+            robots=len(scenario.names),
+            beacon=scenario.beacon,
+        )
+    folder = Path(run_dir).absolute() if run_dir is not None else new_run_dir(runs, scenario.name)
+    folder.mkdir(parents=True, exist_ok=True)
+    say(f"{head}{', quick' if quick else ''}; run folder {folder}")
+    engine = Run(scenario, backend, folder, lab_name or default_lab_name(), quick, say)
+    return engine.execute(report=report)

@@ -1,0 +1,151 @@
+"""The scenario engine's seams: its registries are complete, and its time is injected, so a
+whole scenario at the product's 10 s beacon with two minutes of mobility runs against a fake
+lab in virtual time, in an instant, with deadlines counted in that time."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from netlab.clock import VirtualClock
+from netlab.scenario import (
+    CONDITIONS,
+    PRODUCT_BEACON,
+    STEPS,
+    Agreement,
+    Backend,
+    Check,
+    Flaps,
+    Lists,
+    Merge,
+    Mobility,
+    Partition,
+    Publish,
+    Scenario,
+    Sleep,
+    Start,
+    Unreachable,
+    Wait,
+    run,
+)
+from netlab.scenario.actions import ACTIONS
+from netlab.scenario.judges import EVALUATORS, JUDGES
+from tests.test_netlab_scenario import FakeLab, fake, quiet
+
+__all__ = ["fake"]  # the fake lab's backend, a fixture
+
+
+def test_every_step_kind_has_one_action_and_every_condition_one_way_to_be_judged() -> None:
+    actions = {cls for cls in STEPS.values() if not issubclass(cls, Check)}
+    assert set(ACTIONS) == actions, "a step kind without its function in actions.py"
+    polled = {cls for cls in CONDITIONS.values() if cls.polled}
+    assert set(EVALUATORS) == polled, "a polled condition without its evaluator in judges.py"
+    assert set(JUDGES) == set(CONDITIONS.values()) - polled, "a judged-once condition unjudged"
+
+
+def test_a_virtual_clock_fires_timers_in_order_while_time_is_slept_through() -> None:
+    clock = VirtualClock(epoch=1000.0)
+    seen: list[tuple[str, float]] = []
+    stop_a = clock.every(2.0, lambda: seen.append(("a", clock.monotonic())))
+    clock.every(3.0, lambda: seen.append(("b", clock.monotonic())))
+    clock.sleep(6.5)
+    assert seen == [("a", 2.0), ("b", 3.0), ("a", 4.0), ("a", 6.0), ("b", 6.0)]
+    assert clock.monotonic() == 6.5 and clock.time() == 1006.5
+    stop_a()
+    clock.sleep(3.0)
+    assert seen[5:] == [("b", 9.0)]
+    with pytest.raises(ValueError, match="period must be positive"):
+        clock.every(0, lambda: None)
+
+
+def _virtual(backend: Backend, monkeypatch: pytest.MonkeyPatch) -> VirtualClock:
+    clock = VirtualClock()
+
+    def no_real_sleep(seconds: float) -> None:
+        raise AssertionError(f"the engine slept {seconds} s of real time")
+
+    monkeypatch.setattr(time, "sleep", no_real_sleep)
+    return clock
+
+
+def test_a_whole_scenario_at_the_product_beacon_runs_in_virtual_time(
+    fake: tuple[Backend, list[FakeLab]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    backend, labs = fake
+    clock = _virtual(backend, monkeypatch)
+    sc = Scenario(
+        "virtual",
+        robots=6,
+        beacon=PRODUCT_BEACON,
+        radius=20.0,
+        groups={"a": ["r1", "r2", "r3"], "b": ["r4", "r5", "r6"]},
+        sample=1.0,
+        capture="none",
+        steps=[
+            Start(),
+            Publish("all", "camera", "sensor.camera"),
+            Wait(Lists(services=True), within="1 beacon"),
+            Partition(["a", "b"], label="split"),
+            Check(Lists(groups=["a", "b"]), within="3 beacons + 0.5 s"),
+            Merge(label="merge"),
+            Check(Lists(), within="1 beacon + 1 s"),
+            Mobility(duration="2 min", label="walk"),
+            Check(Agreement(over="walk", lag="1 beacon")),
+            Check(Flaps(over="walk")),
+            Sleep("30 s"),
+            Check(Lists(), during="2 beacons"),
+        ],
+    )
+    lines: list[str] = []
+    started = time.perf_counter()
+    result = run(
+        sc,
+        run_dir=tmp_path,
+        backend=replace(backend, clock=clock),
+        say=quiet(lines),
+        report=False,
+    )
+    real = time.perf_counter() - started
+    assert result.ok, "\n".join(lines)
+    assert [c.ok for c in result.checks] == [True] * 6
+    # Two minutes of mobility, 30 s of sleep and 20 s of holding went by in virtual time.
+    assert result.duration >= 120 + 30 + 20
+    assert clock.monotonic() == pytest.approx(result.duration, abs=1.0)
+    assert real < 30, f"{real:.1f} s of real time for a virtual run"
+    walk = next(c for c in result.checks if c.kind == "agreement")
+    samples = walk.data["agreement"]["samples"]
+    assert 110 <= samples <= 125  # one sample a virtual second over the 2-minute walk
+    moves = [c for c in labs[0].calls if c[0] == "move"]
+    assert len(moves) == 6 * (int(120 / 0.5) + 1)  # every robot at every tick, on time
+
+
+def test_a_deadline_is_counted_in_the_backend_s_time(
+    fake: tuple[Backend, list[FakeLab]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    backend, _ = fake
+    clock = _virtual(backend, monkeypatch)
+
+    def make(spec: object) -> FakeLab:
+        lab = backend.make_lab(spec)  # type: ignore[arg-type]
+        lab.blind.add(("r1", "r2"))  # r1 never lists r2
+        return lab
+
+    sc = Scenario(
+        "late",
+        robots=3,
+        beacon=PRODUCT_BEACON,
+        capture="none",
+        steps=[Start(), Check(Lists(), within="2 beacons"), Check(Unreachable("r3"), within=5)],
+    )
+    result = run(
+        sc, run_dir=tmp_path, backend=replace(backend, make_lab=make, clock=clock), say=quiet([])
+    )
+    first, second = result.checks
+    assert first.ok is False and "r1" in first.detail and "r2" in first.detail
+    assert first.deadline == 20.0 and 20.0 < first.at < 20.5
+    # r3 runs and is listed: not unreachable after 5 virtual seconds either.
+    assert second.ok is False and second.at > first.at
+    assert result.status == "failed" and result.duration < 30
