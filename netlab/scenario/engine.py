@@ -16,7 +16,7 @@ import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from netlab import naming, procstat
 from netlab.analysis import count_updates, read_run
@@ -33,6 +33,9 @@ from netlab.scenario.runfolder import new_run_dir, save_run, write_report
 from netlab.scenario.spec import Bad, Robots, Span, StepError, seconds
 from netlab.scenario.steps import Check, Start, twin_mac
 from sdfr.errors import ApiError
+
+if TYPE_CHECKING:
+    from netlab.capture import Capture
 
 PRODUCT_BEACON = 10.0
 
@@ -86,7 +89,7 @@ class Run:
             for i, s in enumerate(sc.steps, 1)
             if isinstance(s, Check) and isinstance(s.condition, Resources)
         }
-        self.usage: dict[int, tuple[dict[str, Any], dict[str, Any]]] = {}
+        self.usage: dict[int, tuple[dict[str, procstat.Usage], dict[str, procstat.Usage]]] = {}
 
     # -- what steps and judges use -------------------------------------------------------------
 
@@ -162,7 +165,7 @@ class Run:
     def execute(self, *, report: bool) -> RunResult:
         start_wall = self.clock.time()
         self.t0 = self.clock.monotonic()
-        captures: list[Any] = []
+        captures: list[Capture] = []
         try:
             self.lab.up()
         except NetlabError as exc:
@@ -220,7 +223,7 @@ class Run:
         n = len(self.sc.names)
         self.say(f"lab {self.lab.name} up: {n} robots on one medium in {took:.2f} s")
 
-    def _start_captures(self) -> list[Any]:
+    def _start_captures(self) -> list[Capture]:
         mode = self.sc.capture
         if mode == "none":
             return []
@@ -245,7 +248,7 @@ class Run:
         self.say(f"capturing on {what} ({len(caps)} tcpdumps, {took:.2f} s)")
         return caps
 
-    def _teardown(self, captures: list[Any]) -> None:
+    def _teardown(self, captures: list[Capture]) -> None:
         if self._observer is not None:
             self.samples = self._observer.stop()
         if self._probe is not None:
@@ -295,14 +298,14 @@ class Run:
                 self.say(f"stopping: {step_ref(i, step)} failed and later steps rely on it")
                 return
 
-    def _usage(self) -> dict[str, Any]:
+    def _usage(self) -> dict[str, procstat.Usage]:
         """A /proc reading of each running daemon's process tree (empty when the lab cannot
         tell its daemons' pids)."""
         pid_of = getattr(self.lab, "daemon_pid", None)
         if pid_of is None:
             return {}
         kids = procstat.children()
-        out: dict[str, Any] = {}
+        out: dict[str, procstat.Usage] = {}
         for name in self.running:
             pid = pid_of(name)
             if pid is not None:
@@ -428,7 +431,7 @@ class Run:
                 return self.seconds(step.condition.lag)
         return self.sc.beacon
 
-    def _meta(self, result: RunResult, lag: float) -> dict[str, Any]:
+    def _meta(self, result: RunResult, lag: float) -> dict[str, object]:
         steps = []
         for i, step in enumerate(self.sc.steps, 1):
             window = self.windows.get(i)

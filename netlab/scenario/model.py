@@ -33,7 +33,7 @@ LAYOUTS = ("line", "random")
 ADDRESSING = ("manual", "auto")
 
 
-def to_fleet_size(v: Any) -> int | tuple[str, ...]:
+def to_fleet_size(v: object) -> int | tuple[str, ...]:
     """`robots = 4` or `robots = ["a", "b"]`."""
     return to_int(v) if isinstance(v, int) and not isinstance(v, bool) else to_names(v)
 

@@ -53,7 +53,7 @@ class Duration:
     beacons: float = 0.0
 
     @classmethod
-    def of(cls, value: Span) -> Duration:
+    def of(cls, value: object) -> Duration:
         """From a Duration, a number of seconds, or text: "2 s", "500 ms", "3 beacons",
         "2 min", "1 beacon + 1 s"; ValueError saying what is accepted otherwise."""
         if isinstance(value, Duration):
@@ -253,7 +253,7 @@ def pairs_of(robots: Sequence[str], peers: Sequence[str], *, both: bool) -> list
 # `netlab.scenario.files` picks one per field from the field's type, or from `toml(...)` in
 # the field's metadata where the file writes it differently.
 
-Conv = Callable[[Any], Any]
+Conv = Callable[[object], object]
 TOML = "netlab.toml"
 
 
@@ -270,25 +270,25 @@ def toml(conv: Conv | Spread) -> dict[str, Conv | Spread]:
     return {TOML: conv}
 
 
-def to_str(v: Any) -> str:
+def to_str(v: object) -> str:
     if not isinstance(v, str):
         raise Bad(f"expected text, got {v!r}")
     return v
 
 
-def to_int(v: Any) -> int:
+def to_int(v: object) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise Bad(f"expected a whole number, got {v!r}")
     return v
 
 
-def to_float(v: Any) -> float:
+def to_float(v: object) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise Bad(f"expected a number, got {v!r}")
     return float(v)
 
 
-def to_robots(v: Any) -> Robots:
+def to_robots(v: object) -> Robots:
     if v is True:
         return "all"
     if isinstance(v, str):
@@ -298,19 +298,19 @@ def to_robots(v: Any) -> Robots:
     raise Bad(f"expected a robot, a group, 'all' or a list of these, got {v!r}")
 
 
-def to_groups(v: Any) -> tuple[Robots, ...]:
+def to_groups(v: object) -> tuple[Robots, ...]:
     if not isinstance(v, list) or not v:
         raise Bad(f"expected a list of groups (group names, or lists of robots), got {v!r}")
     return tuple(to_robots(g) for g in v)
 
 
-def to_pair(v: Any) -> tuple[float, float]:
+def to_pair(v: object) -> tuple[float, float]:
     if not (isinstance(v, list) and len(v) == 2):
         raise Bad(f"expected [x, y], got {v!r}")
     return (to_float(v[0]), to_float(v[1]))
 
 
-def to_range(v: Any) -> tuple[float, float]:
+def to_range(v: object) -> tuple[float, float]:
     """[min, max], or one number for both."""
     if isinstance(v, int | float) and not isinstance(v, bool):
         return (float(v), float(v))
@@ -319,13 +319,13 @@ def to_range(v: Any) -> tuple[float, float]:
     return (to_float(v[0]), to_float(v[1]))
 
 
-def to_table(v: Any) -> dict[str, Any]:
+def to_table(v: object) -> dict[str, Any]:
     if not isinstance(v, dict):
         raise Bad(f"expected a table, got {v!r}")
     return dict(v)
 
 
-def to_loss(v: Any) -> float | None:
+def to_loss(v: object) -> float | None:
     if v == "none":
         return None
     if isinstance(v, bool) or not isinstance(v, int | float):
@@ -333,13 +333,13 @@ def to_loss(v: Any) -> float | None:
     return float(v)
 
 
-def to_true(v: Any) -> bool:
+def to_true(v: object) -> bool:
     if v is not True:
         raise Bad(f"write `= true`, got {v!r}")
     return True
 
 
-def to_names(v: Any) -> tuple[str, ...]:
+def to_names(v: object) -> tuple[str, ...]:
     if not (isinstance(v, list) and all(isinstance(x, str) for x in v)):
         raise Bad(f"expected a list of robot names, got {v!r}")
     return tuple(v)
