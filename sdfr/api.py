@@ -33,11 +33,10 @@ from sdfr import __version__, auth, keystore, procfs, wire
 from sdfr.config import Config, location_max_len
 from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringError, KeyringFileError, StoredKeyring
-from sdfr.model import Service
+from sdfr.model import PeerRecord, Service
 from sdfr.status import DiscoveryStatus
 from sdfr.store import (
     Op,
-    PeerRecord,
     StateWriteError,
     Store,
     StoreError,

@@ -7,7 +7,7 @@ import json
 import math
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from sdfr.errors import ValidationError
@@ -130,3 +130,42 @@ def check_robot_id(robot_id: str) -> str:
             "robot_id", "must be 1-64 characters of A-Z a-z 0-9 . _ -, starting alphanumeric"
         )
     return robot_id
+
+
+@dataclass(frozen=True, slots=True)
+class PeerRecord:
+    """A robot of the history map: what the protocol core hands out (times on the core's
+    clock) and the store keeps (times shifted to Unix epoch, `shifted`)."""
+
+    robot_id: str
+    address: str
+    location: str
+    boot_id: int
+    version: int
+    digest: str
+    reachable: bool
+    first_seen: float
+    last_seen: float
+    indicator: float | None
+    rtt_ms: float | None
+    pings: int
+    services: tuple[Service, ...] = field(default=())
+
+    def shifted(self, offset: float) -> PeerRecord:
+        """The same record with its times moved by `offset` seconds (core clock <-> epoch)."""
+        return replace(self, first_seen=self.first_seen + offset, last_seen=self.last_seen + offset)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "robot_id": self.robot_id,
+            "address": self.address,
+            "location": self.location,
+            "reachable": self.reachable,
+            "indicator": self.indicator,
+            "rtt_ms": self.rtt_ms,
+            "boot_id": self.boot_id,
+            "version": self.version,
+            "first_seen": self.first_seen,
+            "last_seen": self.last_seen,
+            "services": [s.to_json() for s in self.services],
+        }

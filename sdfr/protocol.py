@@ -48,7 +48,7 @@ from urllib.parse import urlsplit
 from sdfr import auth, wire
 from sdfr.auth import OPEN, Keyring, ReplayWindow, Sealed
 from sdfr.limits import KeyedBuckets, TokenBucket
-from sdfr.model import Service, service_digest
+from sdfr.model import PeerRecord, Service, service_digest
 from sdfr.wire import WANT_ALL, Alive, Byebye, Discovery, Origin, Reject, Response, Update
 
 #: A unicast destination; `None` in an outgoing datagram means the multicast group.
@@ -83,17 +83,26 @@ FETCH_SETS_PER_S = 2.0
 MAX_REPLY_TO = 64
 
 
+#: The product's protocol defaults, written here once: `CoreConfig` and sdfrd's `Config`
+#: (its flags, TOML keys and help) take them from here.
+BEACON_INTERVAL = 10.0  # the paper's
+MISS_LIMIT = 3
+PING_WINDOW = 20
+REPLY_DELAY_MAX = 0.5
+
+
 @dataclass(frozen=True, slots=True)
 class CoreConfig:
-    """Protocol timing; the defaults are the product's (the paper's 10 s beacon)."""
+    """Protocol timing; the defaults are the product's (the paper's 10 s beacon).  sdfrd
+    builds it from its `Config` by field name (`Config.core_config`)."""
 
     fleet: int
     robot_id: str
-    beacon_interval: float = 10.0
-    miss_limit: int = 3
-    ping_interval: float = 10.0
-    ping_window: int = 20
-    reply_delay_max: float = 0.5
+    beacon_interval: float = BEACON_INTERVAL
+    miss_limit: int = MISS_LIMIT
+    ping_interval: float = BEACON_INTERVAL
+    ping_window: int = PING_WINDOW
+    reply_delay_max: float = REPLY_DELAY_MAX
     mx: int = 1
     jitter: float = 0.1
     update_coalesce: float = 0.02
@@ -188,25 +197,6 @@ class Peer:
         if not self.pings:
             return None
         return sum(self.pings) / len(self.pings)
-
-
-@dataclass(frozen=True, slots=True)
-class PeerView:
-    """A peer as the history map stores it (core-clock times)."""
-
-    robot_id: str
-    address: str
-    location: str
-    boot_id: int
-    version: int
-    digest: str
-    reachable: bool
-    first_seen: float
-    last_heard: float
-    indicator: float | None
-    rtt: float | None
-    pings: int
-    services: tuple[Service, ...]
 
 
 @dataclass(slots=True)
@@ -346,7 +336,7 @@ class Core:
         if self._started and not self._stopped:
             self._update_at = min(self._update_at, now + self.config.update_coalesce)
 
-    def restore(self, views: Iterable[PeerView]) -> None:
+    def restore(self, views: Iterable[PeerRecord]) -> None:
         """Load the history map saved by an earlier run; every peer starts unreachable."""
         for v in views:
             if v.robot_id == self.config.robot_id:
@@ -359,7 +349,7 @@ class Core:
                 address=(v.address, self.config.port),
                 location=v.location,
                 first_seen=v.first_seen,
-                last_heard=v.last_heard,
+                last_heard=v.last_seen,
                 boot_id=v.boot_id,
                 version=v.version,
                 digest=v.digest,
@@ -367,7 +357,7 @@ class Core:
                 proven=True,  # only proven robots are saved
                 held=held,
                 services=v.services if held else (),
-                rtt=v.rtt,
+                rtt=None if v.rtt_ms is None else v.rtt_ms / 1000,
             )
 
     def receive(self, data: bytes, src: Addr, now: float) -> None:
@@ -511,7 +501,7 @@ class Core:
     def has_dirty(self) -> bool:
         return bool(self._dirty) or bool(self._removed)
 
-    def take_dirty(self) -> list[PeerView]:
+    def take_dirty(self) -> list[PeerRecord]:
         """Proven peers whose stored view changed since the last call."""
         views = [
             self.view(self.peers[r])
@@ -532,8 +522,8 @@ class Core:
         self._removed.clear()
         return removed
 
-    def view(self, peer: Peer) -> PeerView:
-        return PeerView(
+    def view(self, peer: Peer) -> PeerRecord:
+        return PeerRecord(
             robot_id=peer.robot_id,
             address=peer.address[0],
             location=peer.location,
@@ -542,9 +532,9 @@ class Core:
             digest=peer.digest,
             reachable=peer.reachable,
             first_seen=peer.first_seen,
-            last_heard=peer.last_heard,
+            last_seen=peer.last_heard,
             indicator=peer.indicator,
-            rtt=peer.rtt,
+            rtt_ms=None if peer.rtt is None else round(peer.rtt * 1000, 3),
             pings=len(peer.pings),
             services=peer.services,
         )

@@ -19,12 +19,11 @@ import os
 import sqlite3
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from sdfr.errors import SdfrError
-from sdfr.model import Service
+from sdfr.model import PeerRecord, Service
 from sdfr.wire import MAX_BOOT_ID
 
 SCHEMA_VERSION = 1
@@ -59,40 +58,6 @@ CREATE TABLE IF NOT EXISTS peers (
     services TEXT NOT NULL
 );
 """
-
-
-@dataclass(frozen=True, slots=True)
-class PeerRecord:
-    """A robot of the history map as the discovery layer last saw it (times are Unix epoch)."""
-
-    robot_id: str
-    address: str
-    location: str
-    boot_id: int
-    version: int
-    digest: str
-    reachable: bool
-    first_seen: float
-    last_seen: float
-    indicator: float | None
-    rtt_ms: float | None
-    pings: int
-    services: tuple[Service, ...] = field(default=())
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "robot_id": self.robot_id,
-            "address": self.address,
-            "location": self.location,
-            "reachable": self.reachable,
-            "indicator": self.indicator,
-            "rtt_ms": self.rtt_ms,
-            "boot_id": self.boot_id,
-            "version": self.version,
-            "first_seen": self.first_seen,
-            "last_seen": self.last_seen,
-            "services": [s.to_json() for s in self.services],
-        }
 
 
 class StoreError(SdfrError):

@@ -38,8 +38,8 @@ from sdfr.api import (
 )
 from sdfr.auth import Keyring
 from sdfr.config import Config, location_max_len
-from sdfr.model import Service
-from sdfr.store import PeerRecord, Store, write_error
+from sdfr.model import PeerRecord, Service
+from sdfr.store import Store, write_error
 
 
 def aio(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:

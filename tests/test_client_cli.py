@@ -23,8 +23,8 @@ from sdfr.cli import main as sdfr
 from sdfr.cli import typed_value
 from sdfr.client import Client
 from sdfr.errors import ApiError
-from sdfr.model import Service
-from sdfr.store import PeerRecord, Store
+from sdfr.model import PeerRecord, Service
+from sdfr.store import Store
 
 
 def free_port() -> int:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from sdfr import wire
-from sdfr.model import Service
-from sdfr.protocol import Core, CoreConfig, PeerView
+from sdfr.model import PeerRecord, Service
+from sdfr.protocol import Core, CoreConfig
 from tests.simnet import SimNet
 
 BEACON = 1.0  # short beacons keep the virtual clock small; every deadline scales with it
@@ -401,7 +401,7 @@ def test_restored_history_revalidates_without_refetch() -> None:
     names = fleet(net, 3, n_services=20)
     net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
     r1 = net.nodes["r1"].core
-    saved: list[PeerView] = [r1.view(p) for p in r1.peers.values()]
+    saved: list[PeerRecord] = [r1.view(p) for p in r1.peers.values()]
     # r1 restarts (new boot) with its history restored from disk.
     node = net.restart("r1", boot_id=2, graceful=False)
     node.core.restore(saved)

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from sdfr.model import Service, service_digest
-from sdfr.store import BOOT_EPOCH, PeerRecord, Store, StoreError
+from sdfr.model import PeerRecord, Service, service_digest
+from sdfr.store import BOOT_EPOCH, Store, StoreError
 
 
 def peer(robot: str, services: tuple[Service, ...], reachable: bool = True) -> PeerRecord:

@@ -29,8 +29,9 @@ from sdfr.daemon import logs
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.daemon.describe import DescribeServer
 from sdfr.errors import SdfrError
-from sdfr.protocol import Core, CoreConfig, PeerView
-from sdfr.store import STATUS_SOCKET, PeerRecord, StateWriteError, Store
+from sdfr.model import PeerRecord
+from sdfr.protocol import Core
+from sdfr.store import STATUS_SOCKET, StateWriteError, Store
 from sdfr.wire import MESSAGE_TYPES
 
 log = logging.getLogger("sdfrd.discovery")
@@ -85,18 +86,7 @@ class DiscoveryLayer:
         self._conflict_logged = 0  # the conflict's datagram count when last logged
         self.address = netif.ipv4(self.iface) or ""
         self.core = Core(
-            CoreConfig(
-                fleet=cfg.fleet,
-                robot_id=cfg.robot_id,
-                beacon_interval=cfg.beacon_interval,
-                miss_limit=cfg.miss_limit,
-                ping_interval=cfg.effective_ping_interval,
-                ping_window=cfg.ping_window,
-                reply_delay_max=cfg.reply_delay_max,
-                group=cfg.group,
-                port=cfg.port,
-                ssdp_interop=cfg.ssdp_interop_wanted,
-            ),
+            cfg.core_config(),
             boot_id=self.boot_id,
             rng=random.Random(),
             location=self._location(),
@@ -136,26 +126,9 @@ class DiscoveryLayer:
     def _location(self) -> str:
         return location_url(self.cfg.describe, self.address)
 
-    def _restore_views(self) -> list[PeerView]:
-        off = self.clock_offset
-        return [
-            PeerView(
-                robot_id=r.robot_id,
-                address=r.address,
-                location=r.location,
-                boot_id=r.boot_id,
-                version=r.version,
-                digest=r.digest,
-                reachable=False,
-                first_seen=r.first_seen - off,
-                last_heard=r.last_seen - off,
-                indicator=r.indicator,
-                rtt=None if r.rtt_ms is None else r.rtt_ms / 1000,
-                pings=r.pings,
-                services=r.services,
-            )
-            for r in self.store.load_peers()
-        ]
+    def _restore_views(self) -> list[PeerRecord]:
+        """The saved history map, on the core's clock."""
+        return [r.shifted(-self.clock_offset) for r in self.store.load_peers()]
 
     @staticmethod
     def _open_control(path: Path) -> socket.socket:
@@ -404,29 +377,10 @@ class DiscoveryLayer:
             self.core.mark_unsaved([v.robot_id for v in views], removed)
             self._state_failed(exc)
 
-    def _save_views(self, removed: list[str], views: list[PeerView]) -> None:
+    def _save_views(self, removed: list[str], views: list[PeerRecord]) -> None:
         self.store.delete_peers(removed)
-        if not views:
-            return
-        off = self.clock_offset
-        self.store.save_peers(
-            PeerRecord(
-                robot_id=v.robot_id,
-                address=v.address,
-                location=v.location,
-                boot_id=v.boot_id,
-                version=v.version,
-                digest=v.digest,
-                reachable=v.reachable,
-                first_seen=v.first_seen + off,
-                last_seen=v.last_heard + off,
-                indicator=v.indicator,
-                rtt_ms=None if v.rtt is None else round(v.rtt * 1000, 3),
-                pings=v.pings,
-                services=v.services,
-            )
-            for v in views
-        )
+        if views:
+            self.store.save_peers(v.shifted(self.clock_offset) for v in views)
 
     def _stamp(self) -> tuple[int, int, int] | None:
         try:
