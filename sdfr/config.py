@@ -11,8 +11,16 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from sdfr import wire
 from sdfr.errors import ConfigError
 from sdfr.model import ROBOT_ID_RE
+from sdfr.protocol import (
+    BEACON_INTERVAL,
+    MISS_LIMIT,
+    PING_WINDOW,
+    REPLY_DELAY_MAX,
+    CoreConfig,
+)
 
 DEFAULT_API = "127.0.0.1:8700"
 DEFAULT_DESCRIBE = "iface:8701"
@@ -36,14 +44,14 @@ class Config:
     api: str = DEFAULT_API
     describe: str = DEFAULT_DESCRIBE
     state_dir: Path = field(default_factory=default_state_dir)
-    beacon_interval: float = 10.0
+    beacon_interval: float = BEACON_INTERVAL
     robot_id: str | None = None
-    group: str = "239.255.255.250"
-    port: int = 1900
-    miss_limit: int = 3
+    group: str = wire.DEFAULT_GROUP
+    port: int = wire.DEFAULT_PORT
+    miss_limit: int = MISS_LIMIT
     ping_interval: float | None = None
-    ping_window: int = 20
-    reply_delay_max: float = 0.5
+    ping_window: int = PING_WINDOW
+    reply_delay_max: float = REPLY_DELAY_MAX
     ttl: int = 1
     addressing: str = "manual"
     log_level: str = "info"
@@ -67,6 +75,21 @@ class Config:
     @property
     def effective_ping_interval(self) -> float:
         return self.ping_interval if self.ping_interval is not None else self.beacon_interval
+
+    def core_config(self) -> CoreConfig:
+        """The protocol core's configuration: its fields of the same name, with the derived
+        ones (the ping interval, SSDP interop) worked out.  Call it on a resolved Config."""
+        derived: dict[str, Any] = {
+            "ping_interval": self.effective_ping_interval,
+            "ssdp_interop": self.ssdp_interop_wanted,
+        }
+        ours = {f.name for f in fields(Config)}
+        kw = {
+            f.name: derived[f.name] if f.name in derived else getattr(self, f.name)
+            for f in fields(CoreConfig)
+            if f.name in ours
+        }
+        return CoreConfig(**kw)
 
     def validate(self) -> Config:
         """Return self, or raise ConfigError naming the key that is wrong."""
@@ -221,16 +244,17 @@ _HELP: dict[str, str] = {
     f"changes (default {DEFAULT_DESCRIBE}); 0.0.0.0 listens on every address",
     "state_dir": "directory of the durable state: registrations, history map (default "
     "/var/lib/sdfr as root, else $XDG_STATE_HOME/sdfr)",
-    "beacon_interval": "seconds between Alive beacons (default 10)",
+    "beacon_interval": f"seconds between Alive beacons (default {BEACON_INTERVAL:g})",
     "robot_id": "this robot's identity (default: derived from the interface's MAC)",
-    "group": "IPv4 multicast group (default 239.255.255.250)",
-    "port": "UDP port (default 1900)",
-    "miss_limit": "beacon periods of silence after which a peer is unreachable (default 3)",
+    "group": f"IPv4 multicast group (default {wire.DEFAULT_GROUP})",
+    "port": f"UDP port (default {wire.DEFAULT_PORT})",
+    "miss_limit": "beacon periods of silence after which a peer is unreachable "
+    f"(default {MISS_LIMIT})",
     "ping_interval": "seconds between unicast pings to each reachable peer (default: the beacon "
     "interval)",
-    "ping_window": "how many recent pings the connection indicator counts (default 20)",
+    "ping_window": f"how many recent pings the connection indicator counts (default {PING_WINDOW})",
     "reply_delay_max": "longest random delay before answering a Discovery, bounded by its MX "
-    "(default 0.5)",
+    f"(default {REPLY_DELAY_MAX:g})",
     "ttl": "multicast TTL (default 1: one radio hop)",
     "addressing": "auto: take 10.<fleet>.x.y derived from the MAC, checked with ARP probes and "
     "moved on conflict (set it on robots); manual: leave the interface's addresses alone "

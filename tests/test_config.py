@@ -155,3 +155,22 @@ def test_help_documents_the_fleet_key_options() -> None:
     for flag in ("--key-file", "--auth", "--ssdp-interop"):
         assert flag in text
     assert "sdfr keys generate" in " ".join(text.split())
+
+
+def test_the_core_takes_its_config_by_field_name_and_the_defaults_agree() -> None:
+    from dataclasses import fields
+
+    from sdfr.protocol import CoreConfig
+
+    default = Config(robot_id="r1")
+    core = default.core_config()
+    assert core == CoreConfig(fleet=1, robot_id="r1")  # one set of defaults
+    cfg = Config(
+        robot_id="r7", fleet=3, beacon_interval=2.0, miss_limit=5, ping_window=7, ssdp_interop="on"
+    )
+    core = cfg.core_config()
+    assert (core.fleet, core.robot_id, core.beacon_interval, core.miss_limit) == (3, "r7", 2.0, 5)
+    assert core.ping_interval == 2.0  # unset: the beacon interval
+    assert core.ping_window == 7 and core.ssdp_interop is True
+    shared = {f.name for f in fields(CoreConfig)} & {f.name for f in fields(Config)}
+    assert shared >= {"beacon_interval", "miss_limit", "ping_window", "group", "port"}
