@@ -17,7 +17,10 @@ from __future__ import annotations
 
 import hashlib
 import ipaddress
+import itertools
+import os
 import re
+from collections.abc import Iterable
 
 from netlab.errors import LabNameError
 
@@ -62,6 +65,21 @@ def check_robot_name(name: str) -> str:
             f"with a letter or digit, and not {AIR!r} (reserved for the medium)"
         )
     return name
+
+
+_serial = itertools.count()
+
+
+def unique_lab_name(letter: str, taken: Iterable[str] = ()) -> str:
+    """`letter` + this process (4 base-36 digits) + a counter: at most 8 characters, unique on
+    this machine while the process runs.  A name with a namespace in `taken` is skipped."""
+    if not re.fullmatch(r"[a-z]", letter):
+        raise ValueError(f"a lab name starts with one letter a-z, got {letter!r}")
+    busy = list(taken)
+    while True:
+        name = f"{letter}{b36(os.getpid() % 36**4, 4)}{b36(next(_serial) % 36**3)}"
+        if not any(ns.startswith(prefix(name)) for ns in busy):
+            return name
 
 
 def prefix(lab: str) -> str:

@@ -1,13 +1,13 @@
-"""Shared test set-up: the ``root`` marker, the leak check and ``nsfleet_factory``.
+"""Shared test set-up: the ``root`` marker and the leak check.
 
 * Tests marked ``@pytest.mark.root`` are skipped unless we are root and can
   create a network namespace here (CI runs as root, so there they run).
-* The session fails if a test left behind a network namespace named
-  ``sdfr*`` that did not exist when the session started, or a child process
-  of pytest still running.  Leftovers are reported, then removed/killed by
-  their exact name/pid, so a CI machine is left clean.
-* ``nsfleet_factory(n, **kw)`` returns a set-up ``NsFleet``; all fleets made
-  by a test are torn down after it.
+* The session fails if a test left behind a netlab namespace (``nl-*``) that
+  did not exist when the session started, a lab's manifest, or a child
+  process of pytest still running; what other processes (another lab, a
+  concurrent session) made is not judged.  Leftovers are reported, then
+  removed/killed by their exact name/pid, so a CI machine is left clean.
+* Fleets are built with netlab itself: the fixtures of ``tests/netlab_fixtures.py``.
 """
 
 from __future__ import annotations
@@ -15,24 +15,18 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import signal
-import subprocess
 import time
-from collections.abc import Callable, Iterator
-from functools import cache
-from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from pyroute2 import netns
 
+from netlab import manifest, naming
 from sdfr import procfs
-from tests.nsfleet import PREFIX, NsFleet, name_pid, unique_name
 
 pytest_plugins = ["tests.netlab_fixtures"]
-
-ROOT_SKIP_REASON = "needs root and network namespaces (CI runs as root)"
 
 _baseline_ns: set[str] = set()
 _baseline_manifests: set[str] = set()
@@ -41,68 +35,20 @@ _attributed: dict[str, str] = {}  # leftover (ns name or "pid N") -> first test 
 _leaks: list[str] = []  # filled at session finish, printed in the summary
 
 
-# -- root marker ------------------------------------------------------------
-@cache
-def netns_usable() -> bool:
-    """Root, `ip netns` works, and a namespace can really be created."""
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        return False
-    try:
-        ok = subprocess.run(
-            ["ip", "netns", "list"], capture_output=True, timeout=10, stdin=subprocess.DEVNULL
-        )
-    except (OSError, subprocess.SubprocessError):
-        return False
-    if ok.returncode != 0:
-        return False
-    probe = f"{unique_name()}-probe"
-    try:
-        netns.create(probe)
-    except Exception:
-        return False
-    finally:
-        if probe in netns.listnetns():
-            netns.remove(probe)
-    return True
-
-
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    if item.get_closest_marker("root") is not None and not netns_usable():
-        pytest.skip(ROOT_SKIP_REASON)
+    if item.get_closest_marker("root") is not None:
+        from tests.netlab_fixtures import need_root  # registered as a plugin above
 
-
-# -- nsfleet_factory --------------------------------------------------------
-@pytest.fixture
-def nsfleet_factory() -> Iterator[Callable[..., NsFleet]]:
-    """``make(n, subnet=..., macs=..., name=None) -> NsFleet``, already set up."""
-    if not netns_usable():
-        pytest.skip(ROOT_SKIP_REASON)
-    fleets: list[NsFleet] = []
-
-    def make(n: int, name: str | None = None, **kw: Any) -> NsFleet:
-        fleet = NsFleet(name or unique_name(), n, **kw)
-        fleet.__enter__()  # tears itself down if set-up fails
-        fleets.append(fleet)
-        return fleet
-
-    yield make
-    errors = []
-    for fleet in reversed(fleets):
-        try:
-            fleet.close()
-        except Exception as e:
-            errors.append(e)
-    if errors:
-        raise errors[0]
+        need_root()
 
 
 # -- leak check -------------------------------------------------------------
-NETLAB_PREFIX = "nl-"
-NETLAB_MANIFESTS = Path("/run/netlab")
+NETLAB_PREFIX = naming.NS_PREFIX
+NETLAB_MANIFESTS = manifest.run_dir()
 
 
 def _sdfr_namespaces() -> set[str]:
-    return {ns for ns in netns.listnetns() if ns.startswith((PREFIX, NETLAB_PREFIX))}
+    return {ns for ns in netns.listnetns() if ns.startswith(NETLAB_PREFIX)}
 
 
 def _manifests() -> set[str]:
@@ -125,9 +71,9 @@ def _lab_runner(ns: str) -> int | None:
 
 
 def _foreign(ns: str) -> bool:
-    """A namespace named by ``unique_name``, or a lab run, in another live process (a
-    concurrent test session on the same machine) is not ours to judge."""
-    pid = _lab_runner(ns) if ns.startswith(NETLAB_PREFIX) else name_pid(ns)
+    """A namespace of a lab run by another live process (another user's lab, a concurrent
+    test session on the same machine) is not ours to judge."""
+    pid = _lab_runner(ns)
     if pid is None or pid == os.getpid():
         return False
     return os.path.exists(f"/proc/{pid}")
@@ -195,12 +141,10 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         with contextlib.suppress(OSError):
             netns.remove(ns)
     left = _manifests()
-    for manifest in sorted(left - _baseline_manifests):
-        if _foreign(f"{NETLAB_PREFIX}{manifest.removesuffix('.json')}-air"):
+    for record in sorted(left - _baseline_manifests):
+        if _foreign(f"{NETLAB_PREFIX}{record.removesuffix('.json')}-air"):
             continue
-        leaks.append(
-            f"netlab lab manifest {NETLAB_MANIFESTS / manifest} left behind (lab not down)"
-        )
+        leaks.append(f"netlab lab manifest {NETLAB_MANIFESTS / record} left behind (lab not down)")
     # The raised ARP limits are put back by the last lab to go down: their bookkeeping
     # staying is right while any lab (another user's, too) is still up.
     host = NETLAB_MANIFESTS / ".host.json"

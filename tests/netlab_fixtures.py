@@ -17,15 +17,17 @@ Each skips the test unless we are root (the ``root`` marker does it too).
 from __future__ import annotations
 
 import contextlib
-import itertools
 import os
 import shutil
+import subprocess
 from collections.abc import Callable, Iterator
 from datetime import datetime
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 import pytest
+from pyroute2 import netns
 
 from netlab import cleanup, kernel, manifest, naming
 from netlab.capture import Capture, start_all, stop_all
@@ -48,19 +50,44 @@ def discard(folder: Path) -> None:
 
 DEFAULT_ROBOTS = 3
 DEFAULT_BEACON = 0.5
-SKIP_REASON = "needs root and network namespaces (CI runs as root)"
+ROOT_SKIP_REASON = "needs root and network namespaces (CI runs as root)"
 
-_counter = itertools.count()
+
+@cache
+def netns_usable() -> bool:
+    """Root, `ip netns` works, and a namespace can really be created."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        return False
+    try:
+        ok = subprocess.run(
+            ["ip", "netns", "list"], capture_output=True, timeout=10, stdin=subprocess.DEVNULL
+        )
+    except (OSError, subprocess.SubprocessError):
+        return False
+    if ok.returncode != 0:
+        return False
+    probe = f"{naming.NS_PREFIX}{unique_lab_name()}-probe"
+    try:
+        netns.create(probe)
+    except Exception:
+        return False
+    finally:
+        if probe in netns.listnetns():
+            netns.remove(probe)
+    return True
+
+
+def need_root() -> None:
+    """Skip the test unless it can make network namespaces."""
+    if not netns_usable():
+        pytest.skip(ROOT_SKIP_REASON)
 
 
 def unique_lab_name() -> str:
-    """'f' + this process (4 base-36 digits) + a counter: at most 8 characters, unique on this
-    machine while the process runs; names whose namespaces exist are skipped."""
+    """A lab name unique on this machine ('f' + this process + a counter); names whose
+    namespaces exist are skipped."""
     taken = kernel.list_ns(naming.NS_PREFIX) if os.geteuid() == 0 else []
-    while True:
-        name = f"f{naming.b36(os.getpid() % 36**4, 4)}{naming.b36(next(_counter) % 36**3)}"
-        if not any(ns.startswith(naming.prefix(name)) for ns in taken):
-            return name
+    return naming.unique_lab_name("f", taken)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -68,11 +95,6 @@ def pytest_configure(config: pytest.Config) -> None:
         "markers",
         "fleet(n=3, beacon=0.5, **kw): robots and sdfrd options of the `fleet` fixture",
     )
-
-
-def _need_root() -> None:
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        pytest.skip(SKIP_REASON)
 
 
 def _take_down(lab: Lab) -> list[str]:
@@ -96,7 +118,7 @@ def _take_down(lab: Lab) -> list[str]:
 @pytest.fixture
 def lab_factory() -> Iterator[Callable[..., Lab]]:
     """``make(**lab_kw) -> Lab``: up, uniquely named; every one is taken down after the test."""
-    _need_root()
+    need_root()
     labs: list[Lab] = []
 
     def make(**kw: Any) -> Lab:

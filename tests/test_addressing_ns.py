@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from ipaddress import IPv4Address
 from pathlib import Path
 from typing import Any
@@ -16,7 +16,6 @@ from netlab.capture import Capture
 from netlab.lab import Lab
 from sdfr.addressing import candidates
 from sdfr.errors import ApiError
-from tests.nsfleet import unique_name
 
 pytestmark = pytest.mark.root
 
@@ -43,10 +42,8 @@ def derived(mac: str) -> str:
 
 
 @pytest.fixture
-def lab(tmp_path: Path) -> Iterator[Lab]:
-    name = "a" + unique_name()[-7:]
-    with Lab(name, seed=3, workdir=tmp_path / "lab", addressing="auto") as lab:
-        yield lab
+def lab(lab_factory: Callable[..., Lab], tmp_path: Path) -> Lab:
+    return lab_factory(seed=3, workdir=tmp_path / "lab", addressing="auto")
 
 
 def listing(lab: Lab, robot: str) -> dict[str, dict[str, Any]]:

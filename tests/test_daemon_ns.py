@@ -14,10 +14,10 @@ from typing import Any
 
 import pytest
 
+from netlab.lab import Lab
 from sdfr import keystore
 from sdfr.client import Client
 from sdfr.daemon.supervisor import LOCK_NAME, lock_state_dir
-from tests.nsfleet import NsFleet
 from tests.waiting import poll
 
 pytestmark = pytest.mark.root
@@ -26,10 +26,10 @@ BEACON = 1.0
 
 
 class Robots:
-    """Daemons on an NsFleet; robot i runs in namespace i with state in tmp/ri."""
+    """Daemons in a netlab lab; robot i runs sdfrd with its state in tmp/ri."""
 
-    def __init__(self, fleet: NsFleet, tmp: Path) -> None:
-        self.fleet = fleet
+    def __init__(self, lab: Lab, tmp: Path) -> None:
+        self.lab = lab
         self.tmp = tmp
         self.procs: dict[int, subprocess.Popen[Any]] = {}
         self.clients: dict[int, Client] = {}
@@ -38,8 +38,21 @@ class Robots:
         return self.tmp / f"r{i}"
 
     def start(self, i: int, *extra: str) -> None:
-        self.procs[i] = self.fleet.sdfrd(i, self.state(i), self.tmp / f"r{i}.log", BEACON, *extra)
+        name = f"r{i}"
+        argv = self.lab.sdfrd_argv(name, state_dir=self.state(i), beacon_interval=BEACON)
+        with open(self.tmp / f"r{i}.log", "ab") as out:
+            self.procs[i] = self.lab.popen(
+                name, [*argv, *extra], stdout=out, stderr=subprocess.STDOUT
+            )
         self.wait_healthy(i)
+
+    def exec(self, i: int, argv: list[str]) -> subprocess.CompletedProcess[str]:
+        return self.lab.exec(f"r{i}", argv)
+
+    def kill(self, proc: subprocess.Popen[Any], sig: int = signal.SIGTERM) -> None:
+        """Signal the daemon's whole process group (it runs in a session of its own)."""
+        if proc.poll() is None:
+            os.killpg(proc.pid, sig)
 
     def client(self, i: int) -> Client:
         if i not in self.clients:
@@ -77,9 +90,8 @@ class Robots:
 
 
 @pytest.fixture
-def robots(nsfleet_factory: Callable[..., NsFleet], tmp_path: Path) -> Iterator[Robots]:
-    fleet = nsfleet_factory(3)
-    r = Robots(fleet, tmp_path)
+def robots(fleet_factory: Callable[..., Lab], tmp_path: Path) -> Iterator[Robots]:
+    r = Robots(fleet_factory(3, start=False), tmp_path)
     try:
         yield r
     finally:
@@ -112,7 +124,7 @@ def test_three_daemons_discover_publish_leave_die_and_restore(robots: Robots) ->
     # Byebye: a graceful stop removes r3 from the reachable lists at once; history keeps it.
     r.client(3).publish("lidar", "sensor.lidar")
     poll("lidar seen", lambda: "lidar" in r.services_of(1, "r3"), 1.0)
-    r.fleet.kill(r.procs[3], signal.SIGTERM)
+    r.kill(r.procs[3], signal.SIGTERM)
     took = poll("r3 gone", lambda: all("r3" not in r.reachable(j) for j in (1, 2)), 1.0)
     assert took < 0.5
     assert r.procs[3].wait(5) == 0
@@ -128,7 +140,7 @@ def test_three_daemons_discover_publish_leave_die_and_restore(robots: Robots) ->
     r.client(2).publish("arm", "actuator.arm", attributes={"dof": 6})
     poll("arm seen", lambda: "arm" in r.services_of(1, "r2"), 1.0)
     before = r.history(1)["r2"]["indicator"]
-    r.fleet.kill(r.procs[2], signal.SIGKILL)
+    r.kill(r.procs[2], signal.SIGKILL)
     r.procs[2].wait(5)
     took = poll(
         "r2 unreachable", lambda: all("r2" not in r.reachable(j) for j in (1, 3)), 3 * BEACON + 0.5
@@ -158,7 +170,7 @@ def test_one_daemon_per_state_dir(robots: Robots) -> None:
     # file it would seed the keyring from) is refused before it touches anything.
     key = r.tmp / "fleet.key"
     keystore.generate_key_file(key)
-    res = r.fleet.exec(
+    res = r.exec(
         2,
         [
             sys.executable, "-m", "sdfr.daemon.supervisor", "--iface", "eth0",
@@ -174,7 +186,7 @@ def test_one_daemon_per_state_dir(robots: Robots) -> None:
     assert r.layers(1) == pids
     assert r.client(1).health()["discovery"] == "up"
     # Stopped, the daemon leaves the state dir free for the next one.
-    r.fleet.kill(r.procs[1])
+    r.kill(r.procs[1])
     assert r.procs[1].wait(timeout=10) == 0
     os.close(lock_state_dir(state))
 
@@ -242,7 +254,7 @@ for ip, (line, loc, usn) in found.items():
                "services": [s["name"] for s in desc["services"]]}
 print(json.dumps(out))
 """
-    res = r.fleet.exec(1, [sys.executable, "-c", script])
+    res = r.exec(1, [sys.executable, "-c", script])
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
     assert sorted(out) == ["10.1.0.1", "10.1.0.2", "10.1.0.3"]
@@ -250,7 +262,7 @@ print(json.dumps(out))
     assert out["10.1.0.2"]["robot"] == "r2" and out["10.1.0.2"]["services"] == ["gripper"]
     assert out["10.1.0.2"]["usn"].startswith("uuid:r2")
     # The write API is not reachable from another robot.
-    res = r.fleet.exec(
+    res = r.exec(
         1,
         [sys.executable, "-c", "import socket; socket.create_connection(('10.1.0.2', 8700), 1)"],
     )
@@ -263,17 +275,17 @@ def test_cli_in_namespace_and_bad_flags(robots: Robots) -> None:
     r.start(2)
     poll("r1 and r2 see each other", lambda: all_see_all(r, [1, 2]), 5.0)
     sdfr = [sys.executable, "-m", "sdfr.cli"]
-    res = r.fleet.exec(1, [*sdfr, "publish", "cam", "sensor.camera", "--attr", "fps=30"])
+    res = r.exec(1, [*sdfr, "publish", "cam", "sensor.camera", "--attr", "fps=30"])
     assert res.returncode == 0, res.stderr
     poll("cam seen", lambda: "cam" in r.services_of(2, "r1"), 1.0)
-    res = r.fleet.exec(2, [*sdfr, "--json", "neighbors"])
+    res = r.exec(2, [*sdfr, "--json", "neighbors"])
     assert res.returncode == 0, res.stderr
     names = [n["robot_id"] for n in json.loads(res.stdout)["neighbors"]]
     assert names == ["r1"]
-    res = r.fleet.exec(2, [*sdfr, "neighbors"])
+    res = r.exec(2, [*sdfr, "neighbors"])
     assert "r1" in res.stdout and "10.1.0.1" in res.stdout
     # A daemon given a bad flag says what is wrong and exits 2, without a traceback.
-    res = r.fleet.exec(
+    res = r.exec(
         3,
         [
             sys.executable,
@@ -286,5 +298,5 @@ def test_cli_in_namespace_and_bad_flags(robots: Robots) -> None:
         ],
     )
     assert res.returncode == 2 and "iface" in res.stderr and "Traceback" not in res.stderr
-    res = r.fleet.exec(3, [sys.executable, "-m", "sdfr.daemon.supervisor", "--fleet", "300"])
+    res = r.exec(3, [sys.executable, "-m", "sdfr.daemon.supervisor", "--fleet", "300"])
     assert res.returncode == 2 and "fleet" in res.stderr and "Traceback" not in res.stderr

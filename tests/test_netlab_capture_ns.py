@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -14,15 +13,15 @@ import pytest
 
 pytest.importorskip("scapy")
 
-from netlab import analysis
+from netlab import analysis, naming
 from netlab.capture import Capture, CaptureError, CaptureInfo, sidecar_path, start_all, stop_all
+from netlab.lab import Lab
 from netlab.report import write_report
 from sdfr import procfs
-from sdfr.client import Client
-from sdfr.errors import ApiError
-from tests.nsfleet import NsFleet
 
 pytestmark = pytest.mark.root
+
+FleetFactory = Callable[..., Lab]
 
 BEACON = 0.5
 ROBOTS = (1, 2, 3)
@@ -57,41 +56,20 @@ def environment(before: int) -> str:
     )
 
 
-def start_daemon(fleet: NsFleet, i: int, tmp: Path) -> subprocess.Popen[Any]:
-    return fleet.sdfrd(i, tmp / f"state-r{i}", tmp / f"r{i}.log", BEACON)
+def ns(lab: Lab, i: int) -> str:
+    return lab.robot(f"r{i}").ns
 
 
-def wait_healthy(tmp: Path, i: int, timeout: float = 15.0) -> None:
-    client = Client(unix_socket=tmp / f"state-r{i}" / "api.sock", timeout=2.0)
-    deadline = time.monotonic() + timeout
-    try:
-        while True:
-            try:
-                if client.health().get("discovery") == "up":
-                    return
-            except (ApiError, OSError):
-                pass
-            if time.monotonic() > deadline:
-                log = (tmp / f"r{i}.log").read_text(errors="replace")
-                pytest.fail(f"r{i} not healthy within {timeout} s; log:\n{log}")
-            time.sleep(0.05)
-    finally:
-        client.close()
-
-
-def test_captures_of_three_daemons(nsfleet_factory: Callable[..., NsFleet], tmp_path: Path) -> None:
+def test_captures_of_three_daemons(fleet_factory: FleetFactory, tmp_path: Path) -> None:
     overflows = neigh_overflows()
-    fleet = nsfleet_factory(3)
+    lab = fleet_factory(len(ROBOTS), start=False)
     run = tmp_path / "run"
-    caps = [Capture(fleet.ns(i), "eth0", run / f"r{i}.pcap") for i in ROBOTS]
-    caps.append(Capture(fleet.air, "br0", run / "air.pcap"))
+    caps = [Capture(ns(lab, i), naming.ROBOT_IFACE, run / f"r{i}.pcap") for i in ROBOTS]
+    caps.append(Capture(lab.medium.ns, naming.BRIDGE, run / "air.pcap", label="air"))
     start_all(caps)
     try:
         assert all(c.running for c in caps)
-        for i in ROBOTS:
-            start_daemon(fleet, i, tmp_path)
-        for i in ROBOTS:
-            wait_healthy(tmp_path, i)
+        lab.start_all(beacon_interval=BEACON)
         time.sleep(RUN_S)  # traffic to capture, not a readiness wait
     finally:
         stats = stop_all(caps)
@@ -102,11 +80,11 @@ def test_captures_of_three_daemons(nsfleet_factory: Callable[..., NsFleet], tmp_
 
     # The sidecars say what each capture is.
     infos = {c.label: CaptureInfo.from_json(_json(sidecar_path(c.path))) for c in caps}
-    assert infos["air"].role == "medium" and infos["air"].netns == fleet.air
+    assert infos["air"].role == "medium" and infos["air"].netns == lab.medium.ns
     for i in ROBOTS:
-        info = infos[f"r{i}"]
-        assert (info.role, info.iface, info.mac) == ("robot", "eth0", fleet.mac(i))
-        assert f"{fleet.address(i)}/16" in info.addresses
+        info, robot = infos[f"r{i}"], lab.robot(f"r{i}")
+        assert (info.role, info.iface, info.mac) == ("robot", naming.ROBOT_IFACE, robot.mac)
+        assert str(robot.address) in info.addresses
         assert info.started is not None and info.stopped is not None
         assert info.stats.captured is not None and info.stats.captured > 0
 
@@ -157,51 +135,49 @@ def test_captures_of_three_daemons(nsfleet_factory: Callable[..., NsFleet], tmp_
 
 
 def test_capture_is_listening_when_start_returns(
-    nsfleet_factory: Callable[..., NsFleet], tmp_path: Path
+    fleet_factory: FleetFactory, tmp_path: Path
 ) -> None:
     overflows = neigh_overflows()
-    fleet = nsfleet_factory(2)
+    lab = fleet_factory(2, start=False)
     send = (
         "import socket; s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); "
-        f"s.sendto(b'NOTIFY * HTTP/1.1\\r\\n\\r\\n', ('{fleet.address(2)}', 1900))"
+        f"s.sendto(b'NOTIFY * HTTP/1.1\\r\\n\\r\\n', ('{lab.robot('r2').ip}', 1900))"
     )
     for k in range(3):  # no sleep between start, send and stop: nothing may be lost
         path = tmp_path / f"r2-{k}.pcap"
-        with Capture(fleet.ns(2), "eth0", path, bpf="udp port 1900") as cap:
-            res = fleet.exec(1, [sys.executable, "-c", send])
+        with Capture(ns(lab, 2), "eth0", path, bpf="udp port 1900") as cap:
+            res = lab.exec("r1", [sys.executable, "-c", send])
             assert res.returncode == 0, res.stderr
         assert cap.stats is not None
         assert cap.stats.captured == 1, f"{cap.stats}{environment(overflows)}"
         (rec,) = analysis.read_pcap(path)
-        assert (rec.direction, rec.src, rec.msg_type) == ("rx", fleet.address(1), "Reject")
+        assert (rec.direction, rec.src, rec.msg_type) == ("rx", lab.robot("r1").ip, "Reject")
 
 
-def test_capture_errors_in_namespaces(
-    nsfleet_factory: Callable[..., NsFleet], tmp_path: Path
-) -> None:
-    fleet = nsfleet_factory(1)
+def test_capture_errors_in_namespaces(fleet_factory: FleetFactory, tmp_path: Path) -> None:
+    lab = fleet_factory(1, start=False)
     with pytest.raises(CaptureError, match="no interface wlan7 in namespace"):
-        Capture(fleet.ns(1), "wlan7", tmp_path / "x.pcap").start()
+        Capture(ns(lab, 1), "wlan7", tmp_path / "x.pcap").start()
     with pytest.raises(CaptureError, match="namespace 'nl-nope-r9' does not exist"):
         Capture("nl-nope-r9", "eth0", tmp_path / "x.pcap").start()
-    bad = Capture(fleet.ns(1), "eth0", tmp_path / "x.pcap", bpf="udp port")
+    bad = Capture(ns(lab, 1), "eth0", tmp_path / "x.pcap", bpf="udp port")
     with pytest.raises(CaptureError, match="bad capture filter"):
         bad.start()
     assert bad.pid is not None and gone(bad.pid)
 
     # An error inside the with block: tcpdump is stopped, the error is the one raised.
-    with pytest.raises(KeyError), Capture(fleet.ns(1), "eth0", tmp_path / "y.pcap") as cap:
+    with pytest.raises(KeyError), Capture(ns(lab, 1), "eth0", tmp_path / "y.pcap") as cap:
         raise KeyError("boom")
     assert cap.pid is not None and gone(cap.pid)
 
     # start_all: one bad capture, none left running.
-    good = Capture(fleet.ns(1), "eth0", tmp_path / "g.pcap")
+    good = Capture(ns(lab, 1), "eth0", tmp_path / "g.pcap")
     with pytest.raises(CaptureError):
-        start_all([good, Capture(fleet.ns(1), "nope0", tmp_path / "b.pcap")])
+        start_all([good, Capture(ns(lab, 1), "nope0", tmp_path / "b.pcap")])
     assert good.pid is None or gone(good.pid)
 
     # tcpdump that dies during the capture is reported at stop.
-    cap = Capture(fleet.ns(1), "eth0", tmp_path / "z.pcap").start()
+    cap = Capture(ns(lab, 1), "eth0", tmp_path / "z.pcap").start()
     assert cap.pid is not None
     os.kill(cap.pid, 9)
     with pytest.raises(CaptureError, match="failed"):

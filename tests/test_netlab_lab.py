@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import selectors
@@ -80,17 +79,9 @@ for _ in range(count):
         time.sleep(gap)
 """
 
-_names = itertools.count()
-
 
 def unique_lab_name() -> str:
-    """Unique on this machine while this process runs: 't' + 4 base-36 digits of the pid + n."""
-    digits = "0123456789abcdefghijklmnopqrstuvwxyz"
-    pid, out = os.getpid() % 36**4, ""
-    for _ in range(4):
-        pid, rem = divmod(pid, 36)
-        out = digits[rem] + out
-    return f"t{out}{next(_names)}"
+    return naming.unique_lab_name("t")
 
 
 @pytest.fixture

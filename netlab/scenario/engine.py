@@ -10,8 +10,6 @@ in an instant.
 from __future__ import annotations
 
 import contextlib
-import itertools
-import os
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -465,12 +463,9 @@ class Run:
 # Running
 
 
-_lab_counter = itertools.count()
-
-
 def default_lab_name() -> str:
-    """'s' + this process (4 base-36 digits) + a counter: unique on this machine for a while."""
-    return f"s{naming.b36(os.getpid() % 36**4, 4)}{naming.b36(next(_lab_counter) % 36**3)}"
+    """'s' + this process + a counter (`naming.unique_lab_name`)."""
+    return naming.unique_lab_name("s")
 
 
 def missing_requirements(scenario: Scenario, flags: frozenset[str]) -> str | None:

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import os
 import re
 import socket
 import statistics
@@ -56,12 +55,7 @@ _TIME_RE = re.compile(r"time=([\d.]+) ms")
 
 
 def lab_name() -> str:
-    """'nm' + the pid in base 36: unique on this machine while this process runs."""
-    digits, pid, out = "0123456789abcdefghijklmnopqrstuvwxyz", os.getpid(), ""
-    while pid:
-        pid, rem = divmod(pid, 36)
-        out = digits[rem] + out
-    return f"nm{out}"
+    return naming.unique_lab_name("n")
 
 
 @dataclass
