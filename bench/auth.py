@@ -9,7 +9,7 @@ Three measures, each signed and unsigned side by side in the same run:
    receive path of the protocol core (seal check, decode, freshness, bookkeeping) fed a
    stream of a known peer's beacons and pings; medians of repeated timed loops;
 3. a fleet: 6 robots with 100 services each, 5 minutes of virtual time at the product's 10 s
-   beacon (the protocol core on an in-memory medium, tests/simnet.py), bytes each robot
+   beacon (the protocol core on an in-memory medium, tests/support/simnet.py), bytes each robot
    sent and received (UDP payload), open and keyed.
 
 JSON on stdout and in --out (runs/bench-auth.json); a table on stderr.
@@ -177,7 +177,7 @@ def fleet_bytes(robots: int, n_services: int, seconds: float) -> dict[str, Any]:
     STARTUP_S, everyone fetching everyone's set), then in `seconds` of steady state scaled to
     5 minutes.  Virtual time, so the numbers are exact and the run takes a second."""
     sys.path.insert(0, str(ROOT))
-    from tests.simnet import SimNet  # the tests' in-memory medium: one definition of it
+    from tests.support.simnet import SimNet  # the tests' in-memory medium: one definition of it
 
     out: dict[str, Any] = {}
     for label, ring in (("open", auth.OPEN), ("keyed", Keyring.of([KEY]))):

@@ -7,7 +7,7 @@
   process of pytest still running; what other processes (another lab, a
   concurrent session) made is not judged.  Leftovers are reported, then
   removed/killed by their exact name/pid, so a CI machine is left clean.
-* Fleets are built with netlab itself: the fixtures of ``tests/netlab_fixtures.py``.
+* Fleets are built with netlab itself: the fixtures of ``tests/support/fleets.py``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pyroute2 import netns
 from netlab import manifest, naming
 from sdfr import procfs
 
-pytest_plugins = ["tests.netlab_fixtures"]
+pytest_plugins = ["tests.support.fleets", "tests.support.fakelab"]
 
 _baseline_ns: set[str] = set()
 _baseline_manifests: set[str] = set()
@@ -37,7 +37,7 @@ _leaks: list[str] = []  # filled at session finish, printed in the summary
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
     if item.get_closest_marker("root") is not None:
-        from tests.netlab_fixtures import need_root  # registered as a plugin above
+        from tests.support.fleets import need_root  # registered as a plugin above
 
         need_root()
 

@@ -25,80 +25,9 @@ from sdfr.client import Client
 from sdfr.errors import ApiError
 from sdfr.model import PeerRecord, Service
 from sdfr.store import Store
+from tests.support.api import ApiLayer, free_port
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-class ApiLayer:
-    """`python -m sdfr.daemon.apiserver` on a state directory; always stopped by its owner."""
-
-    def __init__(self, state_dir: Path, api_port: int | None = None) -> None:
-        self.state_dir = state_dir
-        self.api = f"127.0.0.1:{api_port or free_port()}"
-        self.describe = f"127.0.0.1:{free_port()}"
-        self.socket = state_dir / "api.sock"
-        self.log = state_dir / "apiserver.log"
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def argv(self) -> list[str]:
-        return [
-            sys.executable,
-            "-m",
-            "sdfr.daemon.apiserver",
-            "--state-dir",
-            str(self.state_dir),
-            "--api",
-            self.api,
-            "--describe",
-            self.describe,
-            "--robot-id",
-            "r1",
-            "--iface",
-            "lo",
-        ]
-
-    def start(self, timeout: float = 20.0) -> None:
-        with self.log.open("ab") as log:
-            self.proc = subprocess.Popen(self.argv(), stdout=log, stderr=log)
-        deadline = time.monotonic() + timeout
-        with Client(self.api, timeout=1.0) as client:
-            while True:
-                if self.proc.poll() is not None:
-                    pytest.fail(f"apiserver exited with {self.proc.returncode}: {self.logs()}")
-                try:
-                    client.health()  # 503 while discovery is down: still an answer
-                    return
-                except ApiError as exc:
-                    if exc.status != 0 or time.monotonic() > deadline:
-                        self.stop()
-                        pytest.fail(f"apiserver not ready: {exc}; log: {self.logs()}")
-                time.sleep(0.05)
-
-    def kill(self) -> None:
-        assert self.proc is not None
-        self.proc.kill()
-        self.proc.wait(timeout=10)
-
-    def stop(self) -> int | None:
-        """SIGTERM, then SIGKILL if it lingers; the exit status."""
-        if self.proc is None:
-            return None
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        return self.proc.returncode
-
-    def logs(self) -> str:
-        return self.log.read_text(errors="replace") if self.log.exists() else ""
+REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture
@@ -623,7 +552,7 @@ def test_cli_keys_says_when_this_user_may_not_use_the_socket(tmp_path: Path) -> 
                         "setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
                         sys.executable, "-m", "sdfr.cli", "keys", *where, "list",
                     ],
-                    capture_output=True, text=True, timeout=30, cwd=Path(__file__).parents[1],
+                    capture_output=True, text=True, timeout=30, cwd=REPO,
                 )  # fmt: skip
                 assert res.returncode == 1, res.stderr
                 assert res.stderr.startswith(f"sdfr: {says}")

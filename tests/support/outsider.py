@@ -1,5 +1,5 @@
 """An outsider on a lab's medium, for the security tests: run inside a namespace as
-``python -m tests.outsider COMMAND ...`` (netlab's ``lab.exec``/``lab.popen``).
+``python -m tests.support.outsider COMMAND ...`` (netlab's ``lab.exec``/``lab.popen``).
 
 It knows only the public wire format: it sends datagrams (hex on the command line) from its
 own address or from any address it likes (a raw socket writes the IP header itself), captures

@@ -43,7 +43,7 @@ from netlab.scenario import (
 )
 from sdfr.addressing import candidates
 from sdfr.errors import ApiError
-from tests.netlab_fixtures import unique_lab_name
+from tests.support.fleets import unique_lab_name
 
 pytestmark = pytest.mark.root
 

@@ -1,4 +1,4 @@
-"""pytest fixtures for netlab labs (registered from tests/conftest.py).
+"""pytest fixtures for netlab labs (a plugin of tests/conftest.py).
 
 * ``lab``: a fresh `Lab`, up, with a name unique on this machine; taken down after the test
   even when it failed, tolerating what the test already removed (robots, namespaces, the lab
@@ -34,7 +34,7 @@ from netlab.capture import Capture, start_all, stop_all
 from netlab.lab import Lab
 
 #: Where a failed test's captures are kept.
-RUNS = Path(__file__).resolve().parent.parent / "runs" / "tests"
+RUNS = Path(__file__).resolve().parents[2] / "runs" / "tests"
 
 
 def run_folder(name: str) -> Path:

@@ -33,9 +33,7 @@ from netlab.scenario import (
 )
 from netlab.scenario.actions import ACTIONS
 from netlab.scenario.judges import EVALUATORS, JUDGES
-from tests.test_netlab_scenario import FakeLab, fake, quiet
-
-__all__ = ["fake"]  # the fake lab's backend, a fixture
+from tests.support.fakelab import FakeLab, quiet
 
 
 def test_every_step_kind_has_one_action_and_every_condition_one_way_to_be_judged() -> None:

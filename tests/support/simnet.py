@@ -11,6 +11,7 @@ import itertools
 import random
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from sdfr.auth import OPEN, Keyring
 from sdfr.model import Service
@@ -245,3 +246,33 @@ class SimNet:
                 self._pump(dst)
 
             self._at(t, deliver)
+
+
+BEACON = 1.0  # short beacons keep the virtual clock small; every deadline scales with it
+
+
+def services(robot: str, n: int = 100, tag: str = "") -> list[Service]:
+    return [
+        Service(
+            id=f"{robot}-s{i}{tag}",
+            name=f"{robot} service {i}",
+            type=f"sensor.kind{i % 7}",
+            url=f"http://{robot}.local:9000/s{i}",
+            attributes={"fps": 30 + i % 5, "frame": f"{robot}/base_link", "ok": i % 2 == 0},
+        )
+        for i in range(n)
+    ]
+
+
+def fleet(net: SimNet, n: int, n_services: int = 100, **cfg: Any) -> list[str]:
+    """Robots r1..rn on `net`, each with `n_services` services, at the short test beacon."""
+    names = [f"r{i}" for i in range(1, n + 1)]
+    for name in names:
+        net.add(
+            name,
+            services=services(name, n_services),
+            beacon_interval=BEACON,
+            ping_interval=BEACON / 2,
+            **cfg,
+        )
+    return names

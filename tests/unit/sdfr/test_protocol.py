@@ -7,35 +7,7 @@ import pytest
 from sdfr import wire
 from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Core, CoreConfig
-from tests.simnet import SimNet
-
-BEACON = 1.0  # short beacons keep the virtual clock small; every deadline scales with it
-
-
-def services(robot: str, n: int = 100, tag: str = "") -> list[Service]:
-    return [
-        Service(
-            id=f"{robot}-s{i}{tag}",
-            name=f"{robot} service {i}",
-            type=f"sensor.kind{i % 7}",
-            url=f"http://{robot}.local:9000/s{i}",
-            attributes={"fps": 30 + i % 5, "frame": f"{robot}/base_link", "ok": i % 2 == 0},
-        )
-        for i in range(n)
-    ]
-
-
-def fleet(net: SimNet, n: int, n_services: int = 100, **cfg: object) -> list[str]:
-    names = [f"r{i}" for i in range(1, n + 1)]
-    for name in names:
-        net.add(
-            name,
-            services=services(name, n_services),
-            beacon_interval=BEACON,
-            ping_interval=BEACON / 2,
-            **cfg,
-        )
-    return names
+from tests.support.simnet import BEACON, SimNet, fleet, services
 
 
 def updates_sent(net: SimNet, since: float) -> int:

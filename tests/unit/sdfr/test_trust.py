@@ -25,8 +25,7 @@ from sdfr.protocol import (
     Addr,
 )
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Update
-from tests.simnet import SimNet
-from tests.test_protocol import BEACON, fleet, services
+from tests.support.simnet import BEACON, SimNet, fleet, services
 
 K1 = bytes(range(32))
 K2 = bytes(range(100, 132))

@@ -92,7 +92,9 @@ def test_sdfrd_reports_bad_flags_in_one_line(
 
 
 def test_the_shipped_robot_config_parses() -> None:
-    cfg = from_args(["--config", str(Path(__file__).parent.parent / "examples" / "robot.toml")])
+    cfg = from_args(
+        ["--config", str(Path(__file__).resolve().parents[3] / "examples" / "robot.toml")]
+    )
     assert (cfg.addressing, cfg.fleet, cfg.iface) == ("auto", 3, "wlan0")
 
 

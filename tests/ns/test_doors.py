@@ -19,12 +19,12 @@ from netlab.lab import Lab
 from sdfr.client import Client
 from sdfr.errors import ApiError
 from sdfr.store import Store
-from tests.test_client_cli import ApiLayer
-from tests.waiting import poll
+from tests.support.api import ApiLayer
+from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 BEACON = 1.0
 
 

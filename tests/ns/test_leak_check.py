@@ -15,7 +15,7 @@ from netlab.lab import Lab
 
 pytestmark = pytest.mark.root
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 INNER = """
 import subprocess

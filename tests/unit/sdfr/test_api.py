@@ -6,7 +6,6 @@ import asyncio
 import base64
 import contextlib
 import errno
-import functools
 import json
 import os
 import re
@@ -15,7 +14,7 @@ import sqlite3
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -40,16 +39,7 @@ from sdfr.auth import Keyring
 from sdfr.config import Config, location_max_len
 from sdfr.model import PeerRecord, Service
 from sdfr.store import Store, write_error
-
-
-def aio(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:
-    """Run an async test in its own event loop (no pytest-asyncio here); fixtures still apply."""
-
-    @functools.wraps(fn)
-    def run(*args: Any, **kwargs: Any) -> None:
-        asyncio.run(fn(*args, **kwargs))
-
-    return run
+from tests.support.api import aio, free_port, raw_exchange
 
 
 @contextlib.asynccontextmanager
@@ -1009,19 +999,6 @@ async def test_json_nested_deeper_than_any_service_is_a_400(cfg: Config, store: 
             assert r.status == 400 and "nested too deeply" in (await r.json())["error"]
 
 
-def raw_exchange(port: int, request: bytes) -> tuple[int, dict[str, str], bytes]:
-    """Send bytes to a server on 127.0.0.1, read its whole answer: status, headers, body."""
-    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
-        sock.sendall(request)
-        data = b""
-        while chunk := sock.recv(65536):
-            data += chunk
-    head, _, body = data.partition(b"\r\n\r\n")
-    lines = head.decode().split("\r\n")
-    headers = {k.lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
-    return int(lines[0].split()[1]), headers, body
-
-
 @aio
 async def test_errors_before_any_handler_are_json_too(cfg: Config, store: Store) -> None:
     runner = Runner(create_app(cfg, store))
@@ -1046,13 +1023,6 @@ async def test_errors_before_any_handler_are_json_too(cfg: Config, store: Store)
             assert len(body["error"]) < 200  # the request is not echoed back
     finally:
         await runner.cleanup()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 # -- publishes: durable, idempotent, grouped ------------------------------------------------------

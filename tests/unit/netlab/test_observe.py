@@ -42,10 +42,7 @@ from netlab.scenario import (
     loads,
     run,
 )
-from tests import test_netlab_scenario as base
-from tests.test_netlab_scenario import BEACON, FakeLab, quiet
-
-fake = base.fake  # the fake lab's backend (a fixture)
+from tests.support.fakelab import BEACON, FakeLab, quiet
 
 ALL = frozenset({("r1", "r2"), ("r2", "r1")})
 

@@ -19,7 +19,7 @@ from netlab.lab import Lab
 from sdfr.errors import ApiError
 from sdfr.model import Service
 from sdfr.store import Store
-from tests.netlab_fixtures import captured
+from tests.support.fleets import captured
 
 pytestmark = pytest.mark.root
 

@@ -22,7 +22,7 @@ from netlab.errors import KernelError, LabExistsError, ShapingUnsupported
 from netlab.lab import Lab
 from netlab.mobility import RandomWaypoint
 from netlab.ranges import Topology, UnitDisc
-from tests.waiting import poll
+from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
 

@@ -18,7 +18,7 @@ from netlab.lab import Lab
 from sdfr import keystore
 from sdfr.client import Client
 from sdfr.daemon.supervisor import LOCK_NAME, lock_state_dir
-from tests.waiting import poll
+from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
 

@@ -10,7 +10,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any
 
 from sdfr.daemon.describe import DescribeServer
-from tests.test_api import aio, free_port, raw_exchange
+from tests.support.api import aio, free_port, raw_exchange
 
 BODY = json.dumps({"robot_id": "r1", "services": []}).encode()
 

@@ -31,7 +31,7 @@ import pytest
 
 from netlab import scenario
 from netlab.analysis import ping_delivery, read_run
-from tests.netlab_fixtures import discard, run_folder
+from tests.support.fleets import discard, run_folder
 
 pytestmark = pytest.mark.root
 

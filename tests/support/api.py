@@ -1,0 +1,116 @@
+"""Helpers for tests of the API layer: an async test runner, raw HTTP exchanges, a free
+port, and the API layer's process on a state directory."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sdfr.client import Client
+from sdfr.errors import ApiError
+
+
+def aio(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:
+    """Run an async test in its own event loop (no pytest-asyncio here); fixtures still apply."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> None:
+        asyncio.run(fn(*args, **kwargs))
+
+    return run
+
+
+def raw_exchange(port: int, request: bytes) -> tuple[int, dict[str, str], bytes]:
+    """Send bytes to a server on 127.0.0.1, read its whole answer: status, headers, body."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+        sock.sendall(request)
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    headers = {k.lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
+    return int(lines[0].split()[1]), headers, body
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+class ApiLayer:
+    """`python -m sdfr.daemon.apiserver` on a state directory; always stopped by its owner."""
+
+    def __init__(self, state_dir: Path, api_port: int | None = None) -> None:
+        self.state_dir = state_dir
+        self.api = f"127.0.0.1:{api_port or free_port()}"
+        self.describe = f"127.0.0.1:{free_port()}"
+        self.socket = state_dir / "api.sock"
+        self.log = state_dir / "apiserver.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def argv(self) -> list[str]:
+        return [
+            sys.executable,
+            "-m",
+            "sdfr.daemon.apiserver",
+            "--state-dir",
+            str(self.state_dir),
+            "--api",
+            self.api,
+            "--describe",
+            self.describe,
+            "--robot-id",
+            "r1",
+            "--iface",
+            "lo",
+        ]
+
+    def start(self, timeout: float = 20.0) -> None:
+        with self.log.open("ab") as log:
+            self.proc = subprocess.Popen(self.argv(), stdout=log, stderr=log)
+        deadline = time.monotonic() + timeout
+        with Client(self.api, timeout=1.0) as client:
+            while True:
+                if self.proc.poll() is not None:
+                    pytest.fail(f"apiserver exited with {self.proc.returncode}: {self.logs()}")
+                try:
+                    client.health()  # 503 while discovery is down: still an answer
+                    return
+                except ApiError as exc:
+                    if exc.status != 0 or time.monotonic() > deadline:
+                        self.stop()
+                        pytest.fail(f"apiserver not ready: {exc}; log: {self.logs()}")
+                time.sleep(0.05)
+
+    def kill(self) -> None:
+        assert self.proc is not None
+        self.proc.kill()
+        self.proc.wait(timeout=10)
+
+    def stop(self) -> int | None:
+        """SIGTERM, then SIGKILL if it lingers; the exit status."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        return self.proc.returncode
+
+    def logs(self) -> str:
+        return self.log.read_text(errors="replace") if self.log.exists() else ""
