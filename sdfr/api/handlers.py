@@ -1,0 +1,421 @@
+"""The REST handlers: local registrations, what discovery found, this robot, the keyring."""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import time
+from collections.abc import Iterable
+from dataclasses import replace
+from typing import Any
+
+from aiohttp import web
+
+from sdfr import __version__, auth, keystore, wire
+from sdfr.api.doors import over_unix_socket
+from sdfr.api.replies import RequestError, cannot_write_status, json_response, read_json
+from sdfr.api.state import (
+    FAILING_AFTER,
+    ApiState,
+    DiscoveryState,
+    neighbor_json,
+    notify_discovery,
+    state_of,
+)
+from sdfr.errors import ConfigError, ValidationError
+from sdfr.keystore import KeyringFileError, StoredKeyring
+from sdfr.model import PeerRecord, Service
+from sdfr.status import DiscoveryStatus
+from sdfr.store import (
+    write_reason,
+)
+from sdfr.wire import check_service_fits
+
+log = logging.getLogger("sdfr.api")
+
+
+# -- handlers: local registrations -------------------------------------------------------------
+
+
+def _published(service: Service, version: int, status: int) -> web.Response:
+    return json_response(
+        {"id": service.id, "service": service.to_json(), "version": version},
+        status=status,
+        headers={"Location": f"/services/{service.id}"},
+    )
+
+
+def _published_already(state: ApiState, service: Service) -> web.Response | None:
+    """A publish under a chosen id that is stored already: the same service again (a client
+    retrying after a lost answer) gets 200 and nothing changes; another one, 409."""
+    stored = state.store.get_service(service.id)
+    if stored is None:
+        return None
+    if stored != service:
+        raise RequestError(
+            409,
+            f"service id {service.id!r} is taken by another service; choose another id, or "
+            "leave id out and the robot picks one",
+            "id",
+        )
+    return _published(stored, state.store.local_version(), 200)
+
+
+async def publish(request: web.Request) -> web.Response:
+    state = state_of(request)
+    obj = await read_json(request)
+    chosen = isinstance(obj, dict) and "id" in obj
+    service = Service.from_json(obj, service_id=None if chosen else secrets.token_hex(6))
+    check_service_fits(service)
+    if chosen and (again := _published_already(state, service)) is not None:
+        return again
+    # What the fleet can never see must not be acknowledged: one announcement is at most
+    # MAX_PARTS datagrams.
+    needed = state.view.parts_with(service)
+    if needed > wire.MAX_PARTS:
+        raise RequestError(
+            507,
+            f"this robot's services would need {needed} update parts, more than the "
+            f"{wire.MAX_PARTS} one announcement can carry; unpublish some or make them smaller",
+            "services",
+        )
+    with state.view.reserving(service):  # checked: concurrent publishes must count it
+        for _ in range(3):
+            result = await state.writer.write(("add", service))
+            if isinstance(result, int):
+                break
+            if chosen:  # the same id published by a request that was in flight with this one
+                again = _published_already(state, service)
+                assert again is not None
+                return again
+            service = replace(service, id=secrets.token_hex(6))  # the random id exists: another
+        else:
+            raise RequestError(500, "could not allocate a service id")
+    state.write_problem = None
+    notify_discovery(state.cfg.state_dir)
+    log.info("published %s (%s, %s), version %d", service.id, service.name, service.type, result)
+    return _published(service, result, 201)
+
+
+async def unpublish(request: web.Request) -> web.Response:
+    state = state_of(request)
+    service_id = request.match_info["id"]
+    version = await state.writer.write(("remove", service_id))
+    if version is None:
+        raise RequestError(404, f"no local service with id {service_id!r}", "id")
+    state.write_problem = None
+    notify_discovery(state.cfg.state_dir)
+    log.info("unpublished %s, version %s", service_id, version)
+    return web.Response(status=204)
+
+
+async def list_services(request: web.Request) -> web.Response:
+    return json_response(state_of(request).view.services_body())
+
+
+# -- handlers: what discovery found ------------------------------------------------------------
+
+
+def _only_params(request: web.Request, allowed: Iterable[str]) -> None:
+    known = set(allowed)
+    for key in request.query:
+        if key not in known:
+            hint = ", ".join(sorted(known)) or "none"
+            raise ValidationError(key, f"unknown query parameter (known: {hint})")
+
+
+def _flag(request: web.Request, name: str) -> bool:
+    raw = request.query.get(name)
+    if raw is None:
+        return False
+    value = raw.strip().lower()
+    if value in ("1", "true", "yes", ""):
+        return True
+    if value in ("0", "false", "no"):
+        return False
+    raise ValidationError(name, "must be 1/0, true/false or yes/no")
+
+
+def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, Any]:
+    return {
+        "neighbors": [
+            neighbor_json(p, p.services) for p in peers if include_unreachable or p.reachable
+        ]
+    }
+
+
+async def neighbors(request: web.Request) -> web.Response:
+    _only_params(request, ["all"])
+    include_unreachable = _flag(request, "all")
+    name = "neighbors.all" if include_unreachable else "neighbors"
+    body = state_of(request).view.peers_body(
+        name, lambda peers: _neighbors(peers, include_unreachable)
+    )
+    return json_response(body)
+
+
+def _search_criteria(request: web.Request) -> tuple[str | None, dict[str, str]]:
+    stype: str | None = None
+    attrs: dict[str, str] = {}
+    for key, value in request.query.items():
+        if key == "type":
+            if stype is not None:
+                raise ValidationError("type", "given more than once")
+            if not value:
+                raise ValidationError("type", "must not be empty")
+            stype = value
+        elif key.startswith("attr.") and len(key) > len("attr."):
+            name = key[len("attr.") :]
+            if name in attrs:
+                raise ValidationError(key, "given more than once")
+            attrs[name] = value
+        else:
+            raise ValidationError(
+                key, "unknown query parameter (known: type, attr.KEY for any attribute KEY)"
+            )
+    if stype is None and not attrs:
+        raise ValidationError("type", "give at least one criterion: type=T or attr.KEY=VALUE")
+    return stype, attrs
+
+
+async def search(request: web.Request) -> web.Response:
+    stype, attrs = _search_criteria(request)
+    found = []
+    for peer in state_of(request).view.peers():
+        if not peer.reachable:
+            continue
+        matching = [s for s in peer.services if s.matches(stype, attrs)]
+        if matching:
+            found.append(neighbor_json(peer, matching))
+    return json_response({"neighbors": found})
+
+
+async def history(request: web.Request) -> web.Response:
+    body = state_of(request).view.peers_body(
+        "history", lambda peers: {"robots": [p.to_json() for p in peers]}
+    )
+    return json_response(body)
+
+
+# -- handlers: this robot ----------------------------------------------------------------------
+
+
+def _discovery_json(disc: DiscoveryState) -> dict[str, Any]:
+    s = disc.status
+    return {
+        "up": disc.up,
+        "heartbeat_age": disc.heartbeat_age,
+        "pid": None if s is None else s.pid,
+        "iface": None if s is None else s.iface,
+        "started": None if s is None else s.started,
+        "announced_version": None if s is None else s.version,
+        "peers_reachable": None if s is None else s.peers_reachable,
+        "peers_known": None if s is None else s.peers_known,
+    }
+
+
+async def self_info(request: web.Request) -> web.Response:
+    state = state_of(request)
+    disc = state.discovery()
+    version, services = state.view.local()
+    rec = disc.status
+    return json_response(
+        {
+            "robot_id": state.cfg.robot_id or (None if rec is None else rec.robot_id),
+            "fleet": state.cfg.fleet,
+            "iface": state.cfg.iface,
+            "address": "" if rec is None else rec.address,
+            "boot_id": None if rec is None else rec.boot_id,
+            "version": version,
+            "location": None if rec is None else rec.location,
+            "software": f"sdfr/{__version__}",
+            "services": [s.to_json() for s in services],
+            "discovery": _discovery_json(disc),
+        }
+    )
+
+
+def discovery_error(status: DiscoveryStatus) -> str | None:
+    """Why the discovery layer, though alive, is failing (None when it is not): its callbacks
+    failed FAILING_AFTER times within a minute, or it cannot announce our services."""
+    errors = status.errors
+    if errors.persistent:
+        return errors.persistent
+    if errors.recent >= FAILING_AFTER and errors.last is not None:
+        return errors.last
+    return None
+
+
+def health_warnings(status: DiscoveryStatus, now: float | None = None) -> list[str]:
+    """What an operator should look at while the daemon is up."""
+    out = []
+    conflict = status.robot_id_conflict
+    if conflict is not None:
+        ago = max(0.0, (time.time() if now is None else now) - conflict.last_seen)
+        out.append(
+            f"another sender claims this robot's id {status.robot_id}: {conflict.address} "
+            f"(boot {conflict.boot_id}, {ago:.0f} s ago, {conflict.count} datagrams); give "
+            "each daemon its own --robot-id"
+        )
+    mode = status.auth.mode
+    if mode in ("accept", "sign"):
+        out.append(
+            f"keyring mode {mode}: unsigned datagrams are accepted; finish with "
+            "`sdfr keys mode enforce` on every robot"
+        )
+    return out
+
+
+def state_problem(state: ApiState, disc: DiscoveryState) -> tuple[str, str] | None:
+    """Why the state directory cannot be written, if it cannot: (full | read-only | error,
+    message), from this layer's last failed write (until one works) or the discovery
+    layer's report."""
+    if state.write_problem is not None and time.time() - state.write_problem[0] < 60.0:
+        return state.write_problem[1], state.write_problem[2]
+    report = None if disc.status is None else disc.status.state
+    if disc.up and report is not None and not report.writable:
+        return report.reason or "error", report.error or ""
+    return None
+
+
+async def health(request: web.Request) -> web.Response:
+    state = state_of(request)
+    disc = state.discovery()
+    failing = discovery_error(disc.status) if disc.up and disc.status else None
+    warnings = health_warnings(disc.status) if disc.up and disc.status else []
+    cannot_write = state_problem(state, disc)
+    ok = disc.up and failing is None and cannot_write is None
+    return json_response(
+        {
+            "status": "degraded" if not ok else "warning" if warnings else "ok",
+            "api": "up",
+            "discovery": "failing" if failing else "up" if disc.up else "down",
+            "discovery_heartbeat_age": disc.heartbeat_age,
+            "discovery_error": failing,
+            "state": "ok" if cannot_write is None else cannot_write[0],
+            "state_error": None if cannot_write is None else cannot_write[1],
+            "auth": None if disc.status is None else disc.status.auth.mode,
+            "warnings": warnings,
+        },
+        status=200 if ok else 503,
+    )
+
+
+# -- handlers: the fleet keyring (unix socket only) --------------------------------------------
+
+
+def _need_unix_socket(request: web.Request) -> None:
+    """Key management is for whoever may open STATE_DIR/api.sock (its file mode says who),
+    never for any program that can reach a TCP port."""
+    if not over_unix_socket(request):
+        path = state_of(request).cfg.state_dir / "api.sock"
+        raise RequestError(
+            403,
+            f"key management is only available on the unix socket {path} "
+            "(sdfr keys --state-dir DIR, or --socket PATH)",
+        )
+
+
+def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
+    ring = stored.keyring
+    status = state.discovery().status
+    received = {} if status is None else status.auth.received
+    return {
+        "mode": ring.mode if ring.keyed else "open",
+        "primary": ring.primary,
+        "keyed": ring.keyed,
+        "ssdp_interop": auth.plain_ssdp_answered(state.cfg.ssdp_interop_wanted, ring),
+        "keys": [
+            {
+                "id": kid,
+                "primary": kid == ring.primary,
+                "installed": stored.installed.get(kid),
+                "received": received.get(kid, 0),
+            }
+            for kid in sorted(ring.keys)
+        ],
+    }
+
+
+def _keyring_failed(exc: KeyringFileError) -> RequestError:
+    """keyring.json could not be read or written: say so, with the status a state directory
+    problem gets elsewhere (507 full, 503 read-only), and 500 for a damaged file."""
+    log.warning("%s", exc)
+    reason = write_reason(exc.errno)
+    status = 500 if reason == "error" else cannot_write_status(reason)
+    return RequestError(status, str(exc), "keyring")
+
+
+def _load_keyring(state: ApiState) -> StoredKeyring:
+    try:
+        return keystore.load(state.cfg.state_dir)
+    except KeyringFileError as exc:
+        raise _keyring_failed(exc) from None
+
+
+def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
+    try:
+        keystore.save(state.cfg.state_dir, stored)
+    except KeyringFileError as exc:
+        raise _keyring_failed(exc) from None
+    notify_discovery(state.cfg.state_dir)
+    ring = stored.keyring
+    log.info("keyring: %s; mode %s, signing with %s", what, ring.mode, ring.primary)
+
+
+async def keys_list(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = state_of(request)
+    return json_response(_keys_json(state, _load_keyring(state)))
+
+
+async def _one_text_field(request: web.Request, name: str, shape: str) -> str:
+    """The body `{name: "..."}` and nothing else; a 422 naming `name` otherwise."""
+    obj = await read_json(request)
+    if not isinstance(obj, dict) or set(obj) != {name} or not isinstance(obj[name], str):
+        raise ValidationError(name, f"expected {{{name!r}: {shape}}}".replace("'", '"'))
+    value: str = obj[name]
+    return value
+
+
+async def keys_install(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = state_of(request)
+    text = await _one_text_field(request, "key", '"<base64 of 32 bytes>"')
+    try:
+        key = keystore.parse_key(text, "key")
+    except ConfigError as exc:
+        raise ValidationError("key", str(exc).removeprefix("key: ")) from None
+    stored, added = keystore.install(_load_keyring(state), key, time.time())
+    kid = auth.key_id(key)
+    if added:
+        _save_keyring(state, stored, f"key {kid} installed")
+    body = {"id": kid, **_keys_json(state, stored)}
+    return json_response(body, status=201 if added else 200)
+
+
+async def keys_use(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = state_of(request)
+    kid = request.match_info["id"]
+    stored = keystore.use(_load_keyring(state), kid)
+    _save_keyring(state, stored, f"signing with key {kid}")
+    return json_response(_keys_json(state, stored))
+
+
+async def keys_remove(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = state_of(request)
+    kid = request.match_info["id"]
+    stored = keystore.remove(_load_keyring(state), kid)
+    _save_keyring(state, stored, f"key {kid} removed")
+    return web.Response(status=204)
+
+
+async def keys_mode(request: web.Request) -> web.Response:
+    _need_unix_socket(request)
+    state = state_of(request)
+    mode = await _one_text_field(request, "mode", '"accept" | "sign" | "enforce"')
+    stored = keystore.set_mode(_load_keyring(state), mode)
+    _save_keyring(state, stored, f"mode {mode}")
+    return json_response(_keys_json(state, stored))
