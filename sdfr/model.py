@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import re
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Annotated, Any
+
+import msgspec
+from msgspec import Meta
 
 from sdfr.errors import ValidationError
 
@@ -23,6 +26,125 @@ MAX_URL = 256
 MAX_ATTRS = 32
 MAX_ATTR_KEY = 64
 MAX_ATTR_VALUE = 256
+
+
+# -- the JSON form of a service: one typed model --------------------------------------------------
+# Validation (`Service.from_json`, for the API, the store and what peers send) and the API's
+# OpenAPI schemas (`json_schemas`) are both made from these types: a limit is written here once.
+
+
+def _whole(regex: re.Pattern[str]) -> str:
+    """`regex` as a JSON Schema pattern that matches whole strings alike in Python (whose `$`
+    also matches before a final newline) and in ECMA-262: `(?![\\s\\S])` is the very end."""
+    return regex.pattern.removesuffix("$") + r"(?![\s\S])"
+
+
+ServiceId = Annotated[str, Meta(pattern=_whole(SERVICE_ID_RE))]
+ServiceName = Annotated[str, Meta(min_length=1, max_length=MAX_NAME, pattern=r"\S")]
+ServiceType = Annotated[
+    str,
+    Meta(
+        pattern=_whole(TYPE_RE),
+        description="What the service is, e.g. `camera/rgb`; searched by equality.",
+    ),
+]
+ServiceUrl = Annotated[str, Meta(max_length=MAX_URL)]
+AttrKey = Annotated[str, Meta(min_length=1, max_length=MAX_ATTR_KEY)]
+#: A number with a JSON form (not NaN, not infinite).
+AttrNumber = Annotated[float, Meta(ge=-sys.float_info.max, le=sys.float_info.max)]
+AttrJson = Annotated[str, Meta(max_length=MAX_ATTR_VALUE)] | int | AttrNumber | bool
+Attributes = Annotated[
+    dict[AttrKey, AttrJson],
+    Meta(
+        max_length=MAX_ATTRS,
+        description="Capabilities, searched with `attr.KEY=VALUE` (booleans as "
+        "`true`/`false`, numbers in their JSON text).",
+    ),
+]
+
+
+class ServiceInput(msgspec.Struct, forbid_unknown_fields=True):
+    """A registration; one service must fit in one datagram."""
+
+    name: ServiceName
+    type: ServiceType
+    id: (
+        Annotated[
+            ServiceId,
+            Meta(
+                description="Chosen by the client to make the publish idempotent: the same "
+                "service again is a 200, another one under this id a 409. Left out, the robot "
+                "picks one."
+            ),
+        ]
+        | msgspec.UnsetType
+    ) = msgspec.UNSET
+    url: ServiceUrl | None = None
+    attributes: Attributes | None = None
+
+
+class ServiceOutput(msgspec.Struct, forbid_unknown_fields=True):
+    """A service as the API and peers show it."""
+
+    id: ServiceId
+    name: ServiceName
+    type: ServiceType
+    url: ServiceUrl | None
+    attributes: Attributes
+
+
+def json_schemas() -> dict[str, Any]:
+    """The JSON Schemas of the service models, by name (`ServiceInput`, `Service`), with
+    references into an OpenAPI document's components."""
+    _, schemas = msgspec.json.schema_components(
+        [ServiceInput, ServiceOutput], ref_template="#/components/schemas/{name}"
+    )
+    schemas["Service"] = schemas.pop("ServiceOutput")
+    for schema in schemas.values():
+        schema.pop("title", None)
+    return schemas
+
+
+#: What a field must be, said when it is not.
+_RULES = {
+    "id": "must be 1-64 characters of A-Z a-z 0-9 . _ -",
+    "name": f"is required: 1-{MAX_NAME} characters, not all blank",
+    "type": "is required: 1-128 characters of A-Z a-z 0-9 . _ : / -, starting with a letter "
+    "or digit",
+    "url": f"must be a string of at most {MAX_URL} characters",
+    "attributes": f"must be a JSON object of at most {MAX_ATTRS} attributes",
+}
+
+
+def _invalid(exc: msgspec.ValidationError, obj: object) -> ValidationError:
+    """msgspec's complaint as a ValidationError naming the field (`attributes.KEY` for one
+    attribute)."""
+    text = str(exc)
+    if m := re.search(r"unknown field `(.+?)`", text):
+        return ValidationError(m[1], "unknown field")
+    if m := re.search(r"missing required field `(.+?)`", text):
+        return ValidationError(m[1], _RULES.get(m[1], "is required"))
+    m = re.search(r"`\$\.(\w+)", text)
+    if m is None:
+        return ValidationError("body", "must be a JSON object")
+    field = m[1]
+    attrs = obj.get("attributes") if isinstance(obj, dict) else None
+    if field == "attributes" and isinstance(attrs, dict) and len(attrs) <= MAX_ATTRS:
+        for key, value in attrs.items():
+            where = f"attributes.{key}"
+            try:
+                msgspec.convert(key, AttrKey)
+            except msgspec.ValidationError:
+                return ValidationError(where, f"keys must be 1-{MAX_ATTR_KEY} characters")
+            try:
+                msgspec.convert(value, AttrJson, strict=True)
+            except msgspec.ValidationError:
+                return ValidationError(
+                    where,
+                    f"values must be strings (at most {MAX_ATTR_VALUE} characters), numbers "
+                    "or booleans; NaN and infinite numbers are not values",
+                )
+    return ValidationError(field, _RULES.get(field, text.split(" - at ")[0]))
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,54 +168,22 @@ class Service:
 
     @classmethod
     def from_json(cls, obj: object, *, service_id: str | None = None) -> Service:
-        """Validate a JSON object into a Service; raise ValidationError naming the field.
-
-        With `service_id` the object needs no `id` (a new registration).
-        """
-        if not isinstance(obj, dict):
-            raise ValidationError("body", "must be a JSON object")
-        allowed = {"id", "name", "type", "url", "attributes"}
-        unknown = sorted(set(obj) - allowed)
-        if unknown:
-            raise ValidationError(unknown[0], "unknown field")
-        sid = service_id if service_id is not None else obj.get("id")
-        if not isinstance(sid, str) or not SERVICE_ID_RE.fullmatch(sid):
-            raise ValidationError("id", "must be 1-64 characters of A-Z a-z 0-9 . _ -")
-        name = obj.get("name")
-        if not isinstance(name, str) or not name.strip():
-            raise ValidationError("name", "is required and must be a non-empty string")
-        if len(name) > MAX_NAME:
-            raise ValidationError("name", f"must be at most {MAX_NAME} characters")
-        stype = obj.get("type")
-        if not isinstance(stype, str) or not TYPE_RE.fullmatch(stype):
-            raise ValidationError(
-                "type",
-                "is required: 1-128 characters of A-Z a-z 0-9 . _ : / -, starting with a "
-                "letter or digit",
-            )
-        url = obj.get("url")
-        if url is not None and (not isinstance(url, str) or len(url) > MAX_URL):
-            raise ValidationError("url", f"must be a string of at most {MAX_URL} characters")
-        attrs = obj.get("attributes", {})
-        if attrs is None:
-            attrs = {}
-        if not isinstance(attrs, dict):
-            raise ValidationError("attributes", "must be a JSON object")
-        if len(attrs) > MAX_ATTRS:
-            raise ValidationError("attributes", f"at most {MAX_ATTRS} attributes")
-        clean: dict[str, AttrValue] = {}
-        for key, value in attrs.items():
-            where = f"attributes.{key}"
-            if not key or len(key) > MAX_ATTR_KEY:
-                raise ValidationError(where, f"keys must be 1-{MAX_ATTR_KEY} characters")
-            if not isinstance(value, str | int | float | bool) or value is None:
-                raise ValidationError(where, "values must be strings, numbers or booleans")
-            if isinstance(value, str) and len(value) > MAX_ATTR_VALUE:
-                raise ValidationError(where, f"at most {MAX_ATTR_VALUE} characters")
-            if isinstance(value, float) and not math.isfinite(value):  # no JSON form
-                raise ValidationError(where, "NaN and infinite numbers are not values")
-            clean[key] = value
-        return cls(id=sid, name=name, type=stype, url=url, attributes=clean)
+        """Validate a JSON object into a Service (by `ServiceInput`); raise ValidationError
+        naming the field.  With `service_id` the object needs no `id` (a new registration)."""
+        try:
+            parsed = msgspec.convert(obj, ServiceInput, strict=True)
+        except msgspec.ValidationError as exc:
+            raise _invalid(exc, obj) from None
+        sid = service_id if service_id is not None else parsed.id
+        if isinstance(sid, msgspec.UnsetType):
+            raise ValidationError("id", _RULES["id"])
+        return cls(
+            id=sid,
+            name=parsed.name,
+            type=parsed.type,
+            url=parsed.url,
+            attributes=parsed.attributes or {},
+        )
 
     def matches(self, stype: str | None, attrs: Mapping[str, str]) -> bool:
         """True when the type matches and each attribute equals the given text."""

@@ -62,7 +62,8 @@ def create_app(cfg: Config, store: Store) -> web.Application:
         ("GET", "/keys", keys_list),
         ("POST", "/keys", keys_install),
         ("POST", "/keys/{id}/use", keys_use),
-        ("DELETE", "/keys/{id}", keys_remove),
+        # Not /keys/mode: that resource is the mode (PUT), not a key to remove.
+        ("DELETE", "/keys/{id:(?!mode$)[^{}/]+}", keys_remove),
         ("PUT", "/keys/mode", keys_mode),
     ]
     for method, path, handler in routes:

@@ -66,7 +66,10 @@ async def publish(request: web.Request) -> web.Response:
     obj = await read_json(request)
     chosen = isinstance(obj, dict) and "id" in obj
     service = Service.from_json(obj, service_id=None if chosen else secrets.token_hex(6))
-    check_service_fits(service)
+    try:
+        check_service_fits(service)
+    except ValidationError as exc:  # valid, but too large for the fleet to ever see
+        raise RequestError(413, f"the service {exc.message}", exc.field) from None
     if chosen and (again := _published_already(state, service)) is not None:
         return again
     # What the fleet can never see must not be acknowledged: one announcement is at most
@@ -124,16 +127,25 @@ def _only_params(request: web.Request, allowed: Iterable[str]) -> None:
             raise ValidationError(key, f"unknown query parameter (known: {hint})")
 
 
+#: What a yes/no query parameter may be (the OpenAPI document lists these); alone it is yes.
+FLAG_VALUES = {
+    "1": True,
+    "true": True,
+    "yes": True,
+    "": True,
+    "0": False,
+    "false": False,
+    "no": False,
+}
+
+
 def _flag(request: web.Request, name: str) -> bool:
     raw = request.query.get(name)
     if raw is None:
         return False
-    value = raw.strip().lower()
-    if value in ("1", "true", "yes", ""):
-        return True
-    if value in ("0", "false", "no"):
-        return False
-    raise ValidationError(name, "must be 1/0, true/false or yes/no")
+    if raw not in FLAG_VALUES:
+        raise ValidationError(name, "must be 1/0, true/false or yes/no")
+    return FLAG_VALUES[raw]
 
 
 def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, Any]:

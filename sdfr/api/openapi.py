@@ -5,6 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from sdfr import __version__
+from sdfr.api.handlers import FLAG_VALUES
+from sdfr.model import json_schemas
 
 # -- the OpenAPI document ----------------------------------------------------------------------
 
@@ -30,25 +32,34 @@ _DOORS = {
 }
 
 
+#: (method, path) -> (operationId, tag): what a generated client calls each operation.
+OPERATIONS = {
+    ("get", "/services"): ("listServices", "services"),
+    ("post", "/services"): ("publishService", "services"),
+    ("delete", "/services/{id}"): ("unpublishService", "services"),
+    ("get", "/neighbors"): ("listNeighbors", "discovery"),
+    ("get", "/neighbors/search"): ("searchNeighbors", "discovery"),
+    ("get", "/history"): ("listHistory", "discovery"),
+    ("get", "/self"): ("getSelf", "robot"),
+    ("get", "/health"): ("getHealth", "robot"),
+    ("get", "/metrics"): ("getMetrics", "robot"),
+    ("get", "/openapi.json"): ("getOpenApi", "robot"),
+    ("get", "/keys"): ("listKeys", "keys"),
+    ("post", "/keys"): ("installKey", "keys"),
+    ("post", "/keys/{id}/use"): ("useKey", "keys"),
+    ("delete", "/keys/{id}"): ("removeKey", "keys"),
+    ("put", "/keys/mode"): ("setKeyMode", "keys"),
+}
+TAGS = [
+    {"name": "services", "description": "This robot's registrations"},
+    {"name": "discovery", "description": "Which robots are reachable, and what they offer"},
+    {"name": "robot", "description": "This robot and its daemon"},
+    {"name": "keys", "description": "The fleet keyring (unix socket only)"},
+]
+
+
 def openapi_document() -> dict[str, Any]:
     """The OpenAPI 3.1 description of `create_app`'s routes."""
-    attr_value = {"type": ["string", "number", "integer", "boolean"]}
-    service_fields = {
-        "name": {"type": "string", "minLength": 1, "maxLength": 128},
-        "type": {
-            "type": "string",
-            "pattern": "^[A-Za-z0-9][A-Za-z0-9._:/-]{0,127}$",
-            "description": "What the service is, e.g. `camera/rgb`; searched by equality.",
-        },
-        "url": {"type": ["string", "null"], "maxLength": 256},
-        "attributes": {
-            "type": "object",
-            "maxProperties": 32,
-            "additionalProperties": attr_value,
-            "description": "Capabilities, searched with `attr.KEY=VALUE` (booleans as "
-            "`true`/`false`, numbers in their JSON text).",
-        },
-    }
     nullable_number = {"type": ["number", "null"]}
     neighbor_properties: dict[str, Any] = {
         "robot_id": {"type": "string"},
@@ -79,6 +90,7 @@ def openapi_document() -> dict[str, Any]:
         },
     }
     schemas: dict[str, Any] = {
+        **json_schemas(),  # ServiceInput and Service: from the one typed model
         "Error": {
             "type": "object",
             "required": ["error", "field"],
@@ -86,27 +98,6 @@ def openapi_document() -> dict[str, Any]:
                 "error": {"type": "string"},
                 "field": {"type": ["string", "null"]},
             },
-        },
-        "ServiceInput": {
-            "type": "object",
-            "required": ["name", "type"],
-            "additionalProperties": False,
-            "properties": {
-                "id": {
-                    "type": "string",
-                    "pattern": "^[A-Za-z0-9._-]{1,64}$",
-                    "description": "Chosen by the client to make the publish idempotent: the "
-                    "same service again is a 200, another one under this id a 409. Left out, "
-                    "the robot picks one.",
-                },
-                **service_fields,
-            },
-            "description": "A registration; one service must fit in one datagram.",
-        },
-        "Service": {
-            "type": "object",
-            "required": ["id", "name", "type", "url", "attributes"],
-            "properties": {"id": {"type": "string"}, **service_fields},
         },
         "Published": {
             "type": "object",
@@ -264,7 +255,11 @@ def openapi_document() -> dict[str, Any]:
                     "200": _answer("Published already under this id (a retry)", "Published"),
                     **_ERRORS_400,
                     "409": {**_ERROR, "description": "The id is another service's"},
-                    "413": _ERROR,
+                    "413": {
+                        **_ERROR,
+                        "description": "The body is over 64 KiB, or the service would not fit in "
+                        "one discovery datagram as JSON (field `service`)",
+                    },
                     "503": {**_ERROR, "description": "The state directory is read-only"},
                     "507": {
                         **_ERROR,
@@ -291,8 +286,10 @@ def openapi_document() -> dict[str, Any]:
                         "name": "all",
                         "in": "query",
                         "required": False,
-                        "schema": {"enum": ["1", "0", "true", "false", "yes", "no"]},
-                        "description": "Also the unreachable robots of the history map",
+                        "schema": {"enum": sorted(FLAG_VALUES)},
+                        "allowEmptyValue": True,
+                        "description": "Also the unreachable robots of the history map "
+                        "(`?all` alone is `?all=true`)",
                     }
                 ],
                 "responses": {"200": _answer("The neighbours", "Neighbors"), "422": _ERROR},
@@ -306,17 +303,22 @@ def openapi_document() -> dict[str, Any]:
                 "given attribute are equal.",
                 "parameters": [
                     {
-                        "name": "type",
+                        "name": "criteria",
                         "in": "query",
-                        "required": False,
-                        "schema": {"type": "string"},
-                    },
-                    {
-                        "name": "attr.KEY",
-                        "in": "query",
-                        "required": False,
-                        "schema": {"type": "string"},
-                        "description": "Replace KEY by the attribute's name",
+                        "required": True,
+                        "style": "form",
+                        "explode": True,
+                        "schema": {
+                            "type": "object",
+                            "minProperties": 1,
+                            "properties": {"type": {"type": "string", "minLength": 1}},
+                            "patternProperties": {"^attr\\..+": {"type": "string"}},
+                            "additionalProperties": False,
+                        },
+                        "description": "The criteria, each a query parameter of its own: "
+                        "`type=T` and any number of `attr.KEY=VALUE` (a generated client "
+                        'passes an object such as {"type": "camera", "attr.fps": '
+                        '"30"})',
                     },
                 ],
                 "responses": {"200": _answer("The matches", "Neighbors"), "422": _ERROR},
@@ -447,6 +449,8 @@ def openapi_document() -> dict[str, Any]:
     }
     for path, ops in paths.items():
         for method, op in ops.items():
+            op["operationId"], tag = OPERATIONS[(method, path)]
+            op["tags"] = [tag]
             if path.startswith("/keys"):  # a GET only reads the keyring
                 errors = keyring_errors if method != "get" else {"500": keyring_errors["500"]}
                 op["responses"].update(errors)
@@ -464,6 +468,7 @@ def openapi_document() -> dict[str, Any]:
             "description": "Publish this robot's services; ask which robots are reachable and "
             "what they offer. Every answer, errors included, is JSON (except /metrics).",
         },
+        "tags": TAGS,
         "paths": paths,
         "components": {"schemas": schemas},
     }

@@ -151,7 +151,7 @@ BIG = {f"k{i}": "v" * 250 for i in range(10)}
         ({"name": "x", "type": "t", "colour": "red"}, 422, "colour"),
         ({"name": "x", "type": "t", "id": "has space"}, 422, "id"),
         ({"name": "x", "type": "t", "url": 5}, 422, "url"),
-        ({"name": "x", "type": "t", "attributes": BIG}, 422, "service"),
+        ({"name": "x", "type": "t", "attributes": BIG}, 413, "service"),
         ([{"name": "x", "type": "t"}], 422, "body"),
         ("{not json", 400, None),
         ('{"name": "x", "type": "t", "attributes": {"a": NaN}}', 400, None),
