@@ -4,16 +4,20 @@ port, and the API layer's process on a state directory."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
+import os
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
 import pytest
+from aiohttp import web
+from aiohttp.test_utils import TestClient, TestServer
 
 from sdfr.client import Client
 from sdfr.errors import ApiError
@@ -114,3 +118,33 @@ class ApiLayer:
 
     def logs(self) -> str:
         return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+
+@contextlib.asynccontextmanager
+async def serve(app: web.Application) -> AsyncIterator[TestClient[web.Request, web.Application]]:
+    async with TestClient(TestServer(app)) as client:
+        yield client
+
+
+def status(**extra: Any) -> dict[str, Any]:
+    return {
+        "pid": os.getpid(),
+        "robot_id": "r1",
+        "fleet": 7,
+        "iface": "lo",
+        "address": "10.7.3.4",
+        "boot_id": 5,
+        "version": 0,
+        "started": time.time() - 10,
+        "location": "http://10.7.3.4:8701/description.json",
+        "peers_reachable": 2,
+        "peers_known": 3,
+        "counters": {
+            "datagrams_in": {"discovery": 1, "response": 2, "update": 3, "alive": 7, "byebye": 0},
+            "datagrams_out": {"discovery": 1, "response": 0, "update": 1, "alive": 9, "byebye": 0},
+            "bytes_in": 4200,
+            "bytes_out": 3100,
+            "rejects": {"bad-fleet": 2, 'odd"reason': 1},
+        },
+        **extra,
+    }
