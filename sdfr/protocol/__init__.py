@@ -1,0 +1,103 @@
+"""The discovery protocol as a timed automaton with no I/O.
+
+The owner of the sockets feeds it datagrams (`receive`) and the time
+(`handle_timer`), takes what it must send (`datagrams_to_send`) and sleeps
+until `next_deadline()`. Every entry point takes `now` in seconds of one
+monotonic clock; randomness (reply delays, beacon jitter) comes from the
+injected `random.Random`. Nothing here reads a clock or touches a socket, so
+whole fleets run in virtual time in the tests.
+
+Messages (see sdfr.wire):
+- Discovery (M-SEARCH): multicast at start-up, asking every robot for its
+  services; unicast to one robot as a ping (`seq`) or to fetch a service set
+  (or some parts of it) whose version we do not hold.
+- Response (200 OK): the unicast answer to a ping, and to plain SSDP clients.
+- Update (NOTIFY ssdp:update): the service set, split into parts; multicast
+  when local services change, in reply to a Discovery otherwise.
+- Alive (NOTIFY ssdp:alive): the beacon, carrying only the set's version and
+  digest, so a robot whose services did not change costs a few hundred bytes.
+- Byebye (NOTIFY ssdp:byebye): graceful departure.
+
+Trust (see also sdfr.auth):
+- With a fleet key every datagram goes out sealed; one whose seal fails is dropped before it
+  is parsed, and one whose counter was seen already in that boot (a replay) right after.
+- A claim that contradicts what a robot last proved is never applied on the word of one
+  datagram: an older boot, a datagram after that boot's Byebye, an older version, a new
+  address.  It is answered with a *challenge*, a ping to the address it came from, and the
+  robot's answer to that (its boot, version and digest, fresh by construction) is what is
+  believed.  So nothing is ever locked out for good.
+- A robot heard only through unsigned datagrams is *unproven* until it answers a ping: it is
+  challenged at once (and again every ping timeout while it stays unproven), neither saved
+  nor listed, and forgotten after a miss limit of silence.  At most MAX_UNPROVEN of them are
+  held, and MAX_PEERS robots in all.
+- An address that has not answered a ping of ours never gets more bytes than it sent: its
+  unicast fetch waits for its answer to a challenge, and its multicast search is answered by
+  multicast, at most once every MCAST_SET_GAP.  Work is bounded per source address
+  (SOURCE_RATE), and challenges in all (CHALLENGE_RATE).
+
+The package: `config` (limits, timing), `peers` (what a robot knows of others), `state`
+(the core's state, peer bookkeeping, sending) and `core` (`Core`: what arrives, whom to
+trust, the entry points).
+"""
+
+from __future__ import annotations
+
+from sdfr.protocol.config import (
+    BEACON_INTERVAL,
+    CHALLENGE_BURST,
+    CHALLENGE_RATE,
+    FETCH_SETS_PER_S,
+    MAX_PEERS,
+    MAX_REPLY_TO,
+    MAX_SOURCES,
+    MAX_UNPROVEN,
+    MCAST_SET_GAP,
+    MISS_LIMIT,
+    PING_WINDOW,
+    PLAIN_BURST,
+    PLAIN_RATE,
+    REPLY_DELAY_MAX,
+    SOURCE_BURST,
+    SOURCE_RATE,
+    UNPROVEN_PARTS,
+    UNPROVEN_PARTS_MIN,
+    Addr,
+    CoreConfig,
+    Outgoing,
+)
+from sdfr.protocol.core import (
+    Core,
+)
+from sdfr.protocol.peers import (
+    Conflict,
+    Counters,
+    Peer,
+)
+
+__all__ = [
+    "BEACON_INTERVAL",
+    "CHALLENGE_BURST",
+    "CHALLENGE_RATE",
+    "FETCH_SETS_PER_S",
+    "MAX_PEERS",
+    "MAX_REPLY_TO",
+    "MAX_SOURCES",
+    "MAX_UNPROVEN",
+    "MCAST_SET_GAP",
+    "MISS_LIMIT",
+    "PING_WINDOW",
+    "PLAIN_BURST",
+    "PLAIN_RATE",
+    "REPLY_DELAY_MAX",
+    "SOURCE_BURST",
+    "SOURCE_RATE",
+    "UNPROVEN_PARTS",
+    "UNPROVEN_PARTS_MIN",
+    "Addr",
+    "Conflict",
+    "Core",
+    "CoreConfig",
+    "Counters",
+    "Outgoing",
+    "Peer",
+]

@@ -1,0 +1,87 @@
+"""The protocol's limits and timing: its constants and `CoreConfig`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from sdfr import wire
+
+#: A unicast destination; `None` in an outgoing datagram means the multicast group.
+Addr = tuple[str, int]
+Outgoing = tuple[bytes, Addr | None]
+
+
+#: Robots the history map holds at most; when full, the one silent longest is forgotten.
+MAX_PEERS = 1024
+#: Robots heard (unsigned) but never proven by a round trip, held at most.
+MAX_UNPROVEN = 256
+#: Update parts buffered for unproven robots, shared among them (but at least
+#: UNPROVEN_PARTS_MIN each); the rest is fetched once a robot is proven.
+UNPROVEN_PARTS = 512
+UNPROVEN_PARTS_MIN = 4
+#: Challenges sent at most, per second and in a burst, to all addresses together.
+CHALLENGE_RATE = 20.0
+CHALLENGE_BURST = 128.0
+#: Datagrams read from one source address, per second and in a burst; the rest are dropped
+#: unread.  A whole set of 255 parts fits in the burst.
+SOURCE_RATE = 500.0
+SOURCE_BURST = 1000.0
+MAX_SOURCES = 4096
+#: Plain SSDP searches answered at most, per second and in a burst (ssdp_interop).
+PLAIN_RATE = 10.0
+PLAIN_BURST = 20.0
+#: Whole sets multicast in answer to searches at most once in this many seconds.
+MCAST_SET_GAP = 1.0
+#: Update parts one address is served at most, per second, in whole sets of ours.
+FETCH_SETS_PER_S = 2.0
+#: Searchers one multicast answer collects at most.
+MAX_REPLY_TO = 64
+
+
+#: The product's protocol defaults, written here once: `CoreConfig` and sdfrd's `Config`
+#: (its flags, TOML keys and help) take them from here.
+BEACON_INTERVAL = 10.0  # the paper's
+MISS_LIMIT = 3
+PING_WINDOW = 20
+REPLY_DELAY_MAX = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class CoreConfig:
+    """Protocol timing; the defaults are the product's (the paper's 10 s beacon).  sdfrd
+    builds it from its `Config` by field name (`Config.core_config`)."""
+
+    fleet: int
+    robot_id: str
+    beacon_interval: float = BEACON_INTERVAL
+    miss_limit: int = MISS_LIMIT
+    ping_interval: float = BEACON_INTERVAL
+    ping_window: int = PING_WINDOW
+    reply_delay_max: float = REPLY_DELAY_MAX
+    mx: int = 1
+    jitter: float = 0.1
+    update_coalesce: float = 0.02
+    fetch_wait: float = 0.25
+    group: str = wire.DEFAULT_GROUP
+    port: int = wire.DEFAULT_PORT
+    #: Answer plain SSDP clients' searches; None: only while the fleet has no key.
+    ssdp_interop: bool | None = None
+
+    @property
+    def dead_after(self) -> float:
+        """Silence after which a peer is unreachable."""
+        return self.miss_limit * self.beacon_interval
+
+    @property
+    def ping_timeout(self) -> float:
+        return min(1.0, 0.8 * self.ping_interval)
+
+    @property
+    def max_age(self) -> int:
+        return max(1, math.ceil(self.dead_after))
+
+    @property
+    def proven_for(self) -> float:
+        """How long an answered ping vouches for its address."""
+        return max(2 * self.ping_interval, self.dead_after)

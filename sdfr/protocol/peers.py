@@ -1,0 +1,103 @@
+"""What a robot knows of others: peers, fetches and pings in flight, conflicts, counters."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+from sdfr.auth import ReplayWindow
+from sdfr.model import Service
+from sdfr.protocol.config import Addr
+
+
+@dataclass(slots=True)
+class _Fetch:
+    """Reassembly of one peer's service set (one boot and version)."""
+
+    boot_id: int
+    version: int
+    digest: str
+    parts: int = 0
+    got: dict[int, tuple[Service, ...]] = field(default_factory=dict)
+    retry_at: float = 0.0
+    backoff: float = 0.0
+
+    def missing(self) -> tuple[int, ...]:
+        return tuple(i for i in range(self.parts) if i not in self.got)
+
+
+@dataclass(frozen=True, slots=True)
+class _Ping:
+    """A ping in flight.  The answer to a challenge is believed whole: boot, version, digest,
+    and the address it came from."""
+
+    robot_id: str
+    sent: float
+    addr: Addr
+    challenge: bool = False
+
+
+@dataclass(slots=True)
+class Peer:
+    """What this robot knows of another: the history map's entry, plus protocol timers."""
+
+    robot_id: str
+    address: Addr
+    location: str
+    first_seen: float
+    last_heard: float
+    boot_id: int
+    version: int
+    digest: str
+    reachable: bool = False
+    #: Answered a ping of ours, or spoke with a valid seal: saved, listed and pinged.
+    proven: bool = False
+    #: (boot, version, digest) the `services` below belong to; None when we hold no set.
+    held: tuple[int, int, str] | None = None
+    services: tuple[Service, ...] = ()
+    byebye_boot: int | None = None
+    pings: deque[bool] = field(default_factory=deque)
+    rtt: float | None = None
+    next_ping: float = math.inf
+    fetch: _Fetch | None = None
+    window: ReplayWindow = field(default_factory=ReplayWindow)
+    challenged_at: float = -math.inf
+    #: A fetch it asked for before its address was proven: (address, parts wanted or None).
+    deferred: tuple[Addr, tuple[int, ...] | None] | None = None
+
+    @property
+    def current(self) -> bool:
+        """We hold the service set the peer last announced."""
+        return self.held == (self.boot_id, self.version, self.digest)
+
+    @property
+    def indicator(self) -> float | None:
+        """Success rate of the pings in the window; None before the first ping is settled."""
+        if not self.pings:
+            return None
+        return sum(self.pings) / len(self.pings)
+
+
+@dataclass(slots=True)
+class Conflict:
+    """Another sender claiming our robot id: a second daemon, or a forger."""
+
+    address: str
+    boot_id: int
+    last_seen: float
+    count: int = 1
+
+
+@dataclass(slots=True)
+class Counters:
+    datagrams_in: Counter[str] = field(default_factory=Counter)
+    datagrams_out: Counter[str] = field(default_factory=Counter)
+    bytes_in: int = 0
+    bytes_out: int = 0
+    rejects: Counter[str] = field(default_factory=Counter)
+    #: Datagrams whose seal checked out, by key id.
+    verified: Counter[str] = field(default_factory=Counter)
+    challenges: int = 0
+    #: Challenges not sent for want of budget (CHALLENGE_RATE): a sign of a flood.
+    challenges_limited: int = 0

@@ -1,0 +1,356 @@
+"""The protocol core's state, its peer bookkeeping (pings, fetches) and what it sends.
+
+`Core` builds on it: what arrives, and whom to trust.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Sequence
+
+from sdfr import auth, wire
+from sdfr.auth import OPEN, Keyring
+from sdfr.limits import KeyedBuckets, TokenBucket
+from sdfr.model import Service, service_digest
+from sdfr.protocol.config import (
+    CHALLENGE_BURST,
+    CHALLENGE_RATE,
+    MAX_SOURCES,
+    MCAST_SET_GAP,
+    PLAIN_BURST,
+    PLAIN_RATE,
+    SOURCE_BURST,
+    SOURCE_RATE,
+    Addr,
+    CoreConfig,
+    Outgoing,
+)
+from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _Ping
+from sdfr.wire import WANT_ALL, Discovery, Origin, Update
+
+
+class CoreState:
+    """One robot's protocol state, and the sending side of it."""
+
+    def __init__(
+        self,
+        config: CoreConfig,
+        *,
+        boot_id: int,
+        rng: random.Random,
+        location: str = "",
+        version: int = 0,
+        services: Sequence[Service] = (),
+        keyring: Keyring = OPEN,
+    ) -> None:
+        self.config = config
+        self.boot_id = boot_id
+        self.location = location
+        self.rng = rng
+        self.version = version
+        self.services: tuple[Service, ...] = tuple(services)
+        self.digest = service_digest(self.services)
+        self.keyring = keyring
+        self.peers: dict[str, Peer] = {}
+        self._unproven = 0  # peers not proven (of self.peers)
+        self.counters = Counters()
+        #: The latest sender claiming our robot id, if any.
+        self.conflict: Conflict | None = None
+        #: Why our set cannot be announced (too many parts), while it cannot.
+        self.announce_error: str | None = None
+        self._out: list[Outgoing] = []
+        self._dirty: set[str] = set()
+        self._removed: set[str] = set()
+        #: Address -> when a ping to it was last answered (a round trip proven).
+        self._answered: dict[Addr, float] = {}
+        #: How many times a peer became reachable (a merge or an arrival shows here).
+        self.arrivals = 0
+        self._started = False
+        self._stopped = False
+        self._next_beacon = math.inf
+        self._next_prune = math.inf
+        self._discovery_repeat = math.inf
+        self._update_at = math.inf
+        self._reply_at = math.inf
+        #: Searchers waiting for our set: address -> robot id.
+        self._reply_to: dict[Addr, str] = {}
+        self._last_set_multicast = -math.inf
+        self._pings: dict[int, _Ping] = {}
+        self._ping_seq = rng.randrange(1 << 30)
+        self._sent_seals = 0
+        self._sources = KeyedBuckets(SOURCE_RATE, SOURCE_BURST, MAX_SOURCES)
+        self._fetch_budget = KeyedBuckets(1.0, 1.0, MAX_SOURCES)
+        self._challenge_budget = TokenBucket(CHALLENGE_RATE, CHALLENGE_BURST)
+        self._plain_budget = TokenBucket(PLAIN_RATE, PLAIN_BURST)
+        self._own_challenge_at = -math.inf
+        self._parts_cache: tuple[tuple[int, int, str, str], list[bytes]] | None = None
+        #: The set every robot in range last heard by multicast: the base of the next delta.
+        self._announced: tuple[int, tuple[Service, ...]] | None = None
+
+    # -- peer bookkeeping ------------------------------------------------------------------
+
+    def _heard(
+        self,
+        peer: Peer,
+        origin: Origin | None,
+        src: Addr,
+        now: float,
+        location: str | None,
+        proof: bool,
+    ) -> None:
+        """Record a sign of life from a peer `_gate` let through."""
+        if origin is not None:
+            if proof:
+                # The answer to a challenge: what the robot says of itself now.
+                if (origin.version, origin.digest) != (peer.version, peer.digest):
+                    peer.version, peer.digest = origin.version, origin.digest
+                    self._dirty.add(peer.robot_id)
+            elif origin.version > peer.version or (
+                origin.version == peer.version and origin.digest != peer.digest
+            ):
+                peer.version, peer.digest = origin.version, origin.digest
+            elif origin.version < peer.version:
+                # Reordered (an older announcement), or the version we hold was never the
+                # robot's: it still shows the robot is there, and its answer will tell.
+                self._challenge(peer, src, now)
+        peer.last_heard = now
+        if peer.address != src:
+            peer.address = src
+            self._dirty.add(peer.robot_id)
+        if location and location != peer.location:
+            peer.location = location
+            self._dirty.add(peer.robot_id)
+        if not peer.reachable:
+            peer.reachable = True
+            self.arrivals += 1
+            # The ping window is kept: the pings lost while the peer was away are part of its
+            # link's record, and the window slides them out as new pings settle.
+            if peer.proven:
+                peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
+            self._dirty.add(peer.robot_id)
+
+    def _new_boot(self, peer: Peer, origin: Origin) -> None:
+        """The peer restarted: its old service set goes, never merged with the new one."""
+        peer.boot_id, peer.version, peer.digest = origin.boot_id, origin.version, origin.digest
+        peer.held = None
+        peer.services = ()
+        peer.fetch = None
+        peer.byebye_boot = None
+        self._dirty.add(peer.robot_id)
+
+    def _want_current(self, peer: Peer, now: float, *, soon: bool) -> None:
+        """Make sure we will come to hold the set the peer announced."""
+        if peer.current:
+            return
+        if peer.held is None and peer.digest == self._empty_digest():
+            # An empty set needs no fetch.
+            peer.services = ()
+            peer.held = (peer.boot_id, peer.version, peer.digest)
+            peer.fetch = None
+            self._dirty.add(peer.robot_id)
+            return
+        f = peer.fetch
+        if f is not None and (f.boot_id, f.version, f.digest) == (
+            peer.boot_id,
+            peer.version,
+            peer.digest,
+        ):
+            return  # already fetching this one
+        peer.fetch = _Fetch(peer.boot_id, peer.version, peer.digest)
+        if soon:
+            peer.fetch.retry_at = now + self.config.fetch_wait
+        else:
+            self._request_fetch(peer, now)
+
+    def _request_fetch(self, peer: Peer, now: float) -> None:
+        """Ask the peer, by unicast, for the parts of its set we lack."""
+        f = peer.fetch
+        if f is None:
+            return
+        if not peer.proven:
+            f.retry_at = math.inf  # asked once it answers its challenge
+            return
+        want: wire.Want = f.missing() if f.parts else WANT_ALL
+        self._send(
+            Discovery(
+                self._origin(),
+                f"uuid:{peer.robot_id}",
+                0,
+                want=want,
+                want_version=f.version,
+                multicast=False,
+            ),
+            peer.address,
+        )
+        f.backoff = min(self.config.beacon_interval, max(2 * f.backoff, self.config.fetch_wait * 2))
+        f.retry_at = now + f.backoff * self.rng.uniform(0.8, 1.2)
+
+    def _ping(
+        self, peer: Peer, now: float, *, addr: Addr | None = None, challenge: bool = False
+    ) -> None:
+        dst = peer.address if addr is None else addr
+        seq = self._new_ping(peer, now, dst, challenge=challenge)
+        self._send(
+            Discovery(self._origin(), f"uuid:{peer.robot_id}", 0, seq=seq, multicast=False), dst
+        )
+
+    def _next_seq(self) -> int:
+        self._ping_seq = (self._ping_seq + 1) & 0x7FFFFFFF
+        return self._ping_seq
+
+    def _new_ping(self, peer: Peer, now: float, dst: Addr, *, challenge: bool = False) -> int:
+        """A ping to `peer` at `dst` sent now (its sequence number); the next is a period away."""
+        seq = self._next_seq()
+        self._pings[seq] = _Ping(peer.robot_id, now, dst, challenge)
+        jitter = self.rng.uniform(1 - self.config.jitter, 1.0)
+        if peer.proven:
+            peer.next_ping = now + self.config.ping_interval * jitter
+        else:  # challenged again after a ping timeout until it answers (a lossy link may
+            # lose a few round trips in a row; CHALLENGE_RATE bounds what fakes can cost)
+            peer.next_ping = now + self.config.ping_timeout * (2 - jitter)
+        return seq
+
+    def _settle_ping(self, peer: Peer, *, ok: bool) -> None:
+        before = peer.indicator
+        peer.pings.append(ok)
+        while len(peer.pings) > self.config.ping_window:
+            peer.pings.popleft()
+        if peer.indicator != before:
+            self._dirty.add(peer.robot_id)
+
+    # -- sending ---------------------------------------------------------------------------
+
+    def _origin(self) -> Origin:
+        return Origin(
+            self.config.fleet, self.config.robot_id, self.boot_id, self.version, self.digest
+        )
+
+    def _beacon_period(self) -> float:
+        return self.config.beacon_interval * self.rng.uniform(1 - self.config.jitter, 1.0)
+
+    def _search(self, now: float) -> None:
+        cfg = self.config
+        self._send(
+            Discovery(self._origin(), wire.fleet_target(cfg.fleet), cfg.mx, want=WANT_ALL), None
+        )
+
+    def _flush_replies(self, now: float) -> None:
+        """Answer the searches gathered during the reply delay: one multicast serves many.
+
+        A lone searcher gets the set by unicast (once its address has answered a ping of
+        ours); several by multicast, at most once every MCAST_SET_GAP (a multicast is aimed
+        at nobody, and a flood of searches costs one set a gap).
+        """
+        targets = self._reply_to
+        if len(targets) == 1:
+            ((dst, robot_id),) = targets.items()
+            self._reply_to, self._reply_at = {}, math.inf
+            peer = self.peers.get(robot_id)
+            if peer is not None:
+                self._serve(peer, dst, None, now)
+            return
+        if now < self._last_set_multicast + MCAST_SET_GAP:
+            self._reply_at = self._last_set_multicast + MCAST_SET_GAP
+            return
+        self._reply_to, self._reply_at = {}, math.inf
+        if targets:
+            self._send_update_parts(None, now)
+
+    def _update_parts(self) -> list[bytes]:
+        key = (self.boot_id, self.version, self.digest, self.location)
+        if self._parts_cache is None or self._parts_cache[0] != key:
+            try:
+                parts = wire.encode_update_parts(
+                    self._origin(),
+                    self.location,
+                    self.config.max_age,
+                    self.services,
+                    group=self.config.group,
+                    port=self.config.port,
+                )
+                self.announce_error = None
+            except ValueError as exc:
+                # Nothing a peer could assemble: announce nothing (the beacons still go out)
+                # and say why, rather than stop.  The API refuses sets this large.
+                parts = []
+                self.announce_error = f"cannot announce the service set: {exc}"
+            self._parts_cache = (key, parts)
+        return self._parts_cache[1]
+
+    def _announce_change(self, now: float) -> None:
+        """Multicast what changed since the last announcement: a delta when it is smaller."""
+        prev = self._announced
+        if prev is None or prev[0] >= self.version:
+            self._send_update_parts(None, now)
+            return
+        old = {s.id: s for s in prev[1]}
+        new_ids = {s.id for s in self.services}
+        added = tuple(s for s in self.services if old.get(s.id) != s)
+        removed = tuple(sid for sid in old if sid not in new_ids)
+        delta = Update(
+            self._origin(),
+            self.location,
+            self.config.max_age,
+            0,
+            1,
+            added,
+            base=prev[0],
+            removed=removed,
+        )
+        try:
+            data = wire.encode(delta, group=self.config.group, port=self.config.port)
+        except ValueError:  # too large for one datagram: the whole set, in parts
+            self._send_update_parts(None, now)
+            return
+        if len(data) >= sum(map(len, self._update_parts())):
+            self._send_update_parts(None, now)
+            return
+        self._announced = (self.version, self.services)
+        self._emit(data, None, "update")
+
+    def _send_update_parts(
+        self, dst: Addr | None, now: float, only: Sequence[int] | None = None
+    ) -> None:
+        if dst is None:
+            # A multicast set answers every pending search too.
+            self._reply_to.clear()
+            self._reply_at = math.inf
+            self._update_at = math.inf
+            self._announced = (self.version, self.services)
+            self._last_set_multicast = now
+        parts = self._update_parts()
+        for i, data in enumerate(parts):
+            if only is None or i in only:
+                self._emit(data, dst, "update")
+
+    def _send(self, msg: wire.Message, dst: Addr | None) -> None:
+        if isinstance(msg, Discovery) and not msg.multicast and dst is not None:
+            # A unicast search names the robot it is sent to in HOST.
+            data = wire.encode(msg, group=dst[0], port=dst[1])
+        else:
+            data = wire.encode(msg, group=self.config.group, port=self.config.port)
+        kind = type(msg).__name__.lower()
+        self._emit(data, dst, kind)
+
+    def _emit(self, data: bytes, dst: Addr | None, kind: str) -> None:
+        ring = self.keyring
+        if ring.signs and ring.primary is not None:
+            self._sent_seals += 1
+            data = auth.seal(data, ring.keys[ring.primary], self._sent_seals)
+        self.counters.datagrams_out[kind] += 1
+        self.counters.bytes_out += len(data)
+        self._out.append((data, dst))
+
+    _EMPTY = service_digest(())
+
+    def _empty_digest(self) -> str:
+        return self._EMPTY
+
+    # -- what the trust layer above provides (`Core`) ---------------------------------------
+
+    def _challenge(self, peer: Peer, addr: Addr, now: float) -> bool:
+        raise NotImplementedError
+
+    def _serve(self, peer: Peer, dst: Addr, only: tuple[int, ...] | None, now: float) -> None:
+        raise NotImplementedError
