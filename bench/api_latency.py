@@ -67,7 +67,7 @@ def wait(what: str, pred: Any, timeout: float) -> None:
     raise SystemExit(f"bench: {what} not within {timeout} s")
 
 
-def run_fleet(n: int, args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
+def run_fleet(n: int, args: argparse.Namespace, tmp: Path) -> dict[str, object]:
     with Lab(f"bench{n}", workdir=tmp / f"n{n}") as lab:
         names = [f"r{i}" for i in range(1, n + 1)]
         lab.add_robots(names)

@@ -172,7 +172,7 @@ def receive_cpu(n: int, repeats: int) -> dict[str, float]:
     return out
 
 
-def fleet_bytes(robots: int, n_services: int, seconds: float) -> dict[str, Any]:
+def fleet_bytes(robots: int, n_services: int, seconds: float) -> dict[str, object]:
     """Per robot, bytes sent and received, open and keyed: during the start-up (the first
     STARTUP_S, everyone fetching everyone's set), then in `seconds` of steady state scaled to
     5 minutes.  Virtual time, so the numbers are exact and the run takes a second."""

@@ -23,7 +23,6 @@ import threading
 import time
 from datetime import datetime
 from pathlib import Path
-from typing import Any
 
 from netlab import naming, procstat
 from netlab.lab import Lab
@@ -90,7 +89,7 @@ class Lists:
         self._thread.join(10)
 
 
-def phase(lab: Lab, pid: int, seconds: float) -> dict[str, Any]:
+def phase(lab: Lab, pid: int, seconds: float) -> dict[str, object]:
     """CPU and memory of r1's daemon, its /neighbors latency, what it sent, over `seconds`."""
     with Client(unix_socket=lab.robot("r1").api_socket, timeout=5.0) as c:
         sent0 = sent_total(c)

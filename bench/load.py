@@ -18,7 +18,7 @@ import time
 from typing import Any
 
 
-def summary(samples: list[float]) -> dict[str, Any]:
+def summary(samples: list[float]) -> dict[str, object]:
     if not samples:
         return {"count": 0}
     s = sorted(samples)
@@ -163,7 +163,7 @@ def server_histograms(w: Worker) -> dict[tuple[str, str], tuple[list[tuple[float
     return hist
 
 
-def server_side(before: Any, after: Any) -> dict[str, Any]:
+def server_side(before: Any, after: Any) -> dict[str, object]:
     """Bucket bounds of the p50/p99 the daemon measured itself, and its mean, per operation."""
     out: dict[str, Any] = {}
     for op, key in ROUTES.items():

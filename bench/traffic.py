@@ -113,7 +113,7 @@ def spread(values: list[float], ndigits: int = 1) -> dict[str, float]:
     }
 
 
-def summarise(n: int, sc: scenario.Scenario, res: scenario.RunResult) -> dict[str, Any]:
+def summarise(n: int, sc: scenario.Scenario, res: scenario.RunResult) -> dict[str, object]:
     assert res.report is not None
     traffic = res.report["traffic"]
     recs, stop = robot_records(res)

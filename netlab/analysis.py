@@ -129,7 +129,7 @@ class Record:
                 return "Ping reply"
         return self.msg_type
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return asdict(self)
 
 

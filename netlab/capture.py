@@ -85,7 +85,7 @@ class CaptureInfo:
     stopped: float | None = None
     stats: CaptureStats = field(default_factory=CaptureStats)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return asdict(self)
 
     @classmethod

@@ -67,7 +67,7 @@ class Manifest:
     robots: dict[str, RobotRecord] = field(default_factory=dict)
     processes: list[ProcRecord] = field(default_factory=list)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {"version": VERSION, **asdict(self)}
 
     @classmethod

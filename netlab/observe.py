@@ -73,7 +73,7 @@ class ClientLike(Protocol):
 
     def unpublish(self, service_id: str) -> None: ...
 
-    def self_info(self) -> dict[str, Any]: ...
+    def self_info(self) -> dict[str, object]: ...
 
     def close(self) -> None: ...
 
@@ -196,7 +196,7 @@ class TruthState:
         """Unordered pairs the medium links (in at least one direction)."""
         return len({frozenset(p) for p in self.links})
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "time": self.time,
             "links": sorted([a, b] for a, b in self.links),
@@ -267,7 +267,7 @@ class Sample:
     seen: Mapping[str, frozenset[str]]
     indicators: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         out: dict[str, Any] = {
             "time": self.time,
             "seen": {a: natural_order(list(s)) for a, s in self.seen.items()},
@@ -542,7 +542,7 @@ class AgreementStats:
     per_sample: list[AgreementSample] = field(default_factory=list)
     worst: list[tuple[str, str, float]] = field(default_factory=list)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "samples": self.samples,
             "observations": self.observations,
@@ -639,7 +639,7 @@ class FlapStats:
     worst: list[tuple[str, str, int]] = field(default_factory=list)
     at: dict[str, dict[str, list[float]]] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "samples": self.samples,
             "pairs": self.pairs,

@@ -77,7 +77,7 @@ class ConnectivitySample:
             reachable_pairs=None if rp is None else int(rp),
         )
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         out: dict[str, Any] = {
             "time": self.time,
             "linked_pairs": self.linked_pairs,
@@ -113,7 +113,7 @@ class AgreementSample:
             per_robot={str(k): float(v) for k, v in dict(obj.get("per_robot") or {}).items()},
         )
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         out: dict[str, Any] = {"time": self.time, "agreement": self.agreement}
         if self.per_robot:
             out["per_robot"] = dict(self.per_robot)
@@ -127,7 +127,7 @@ def write_report(
     connectivity_samples: Sequence[ConnectivitySample | Mapping[str, Any]] | None = None,
     agreement_samples: Sequence[AgreementSample | Mapping[str, Any]] | None = None,
     meta: Mapping[str, Any] | None = None,
-) -> dict[str, Any]:
+) -> dict[str, object]:
     """Write ``report.json`` and the plots into `run_dir`; return what ``report.json`` holds.
 
     `records=None` reads every ``*.pcap`` in `run_dir`.  `meta` (JSON-serialisable) is copied
@@ -212,7 +212,7 @@ def _window(
     return start, max(start, end)
 
 
-def _captures(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[str, Any]:
+def _captures(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[str, object]:
     owners = analysis.capture_owners(recs)
     out: dict[str, dict[str, Any]] = {}
     for r in recs:
@@ -231,11 +231,11 @@ def _captures(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[
     return {k: out[k] for k in analysis.natural_order(list(out))}
 
 
-def _capture_entry(robot: str | None) -> dict[str, Any]:
+def _capture_entry(robot: str | None) -> dict[str, object]:
     return {"robot": robot, "frames": 0, "sdfr": 0, "arp": 0, "tx": 0, "rx": 0}
 
 
-def _connectivity_summary(conn: Sequence[ConnectivitySample]) -> dict[str, Any]:
+def _connectivity_summary(conn: Sequence[ConnectivitySample]) -> dict[str, object]:
     linked = [s.linked_pairs for s in conn]
     return {
         "samples": [s.to_json() for s in conn],
@@ -243,7 +243,7 @@ def _connectivity_summary(conn: Sequence[ConnectivitySample]) -> dict[str, Any]:
     }
 
 
-def _agreement_summary(agree: Sequence[AgreementSample]) -> dict[str, Any]:
+def _agreement_summary(agree: Sequence[AgreementSample]) -> dict[str, object]:
     values = [s.agreement for s in agree]
     return {
         "samples": [s.to_json() for s in agree],

@@ -30,7 +30,7 @@ MSG_TYPES = (*(kind.capitalize() for kind in wire.MESSAGE_TYPES), "Reject")
 _METHODS = {"M-SEARCH": "M-SEARCH", "NOTIFY": "NOTIFY", "HTTP/1.1": "RESPONSE"}
 
 
-def describe(data: bytes) -> dict[str, Any]:
+def describe(data: bytes) -> dict[str, object]:
     """The `SDfR` field values for one datagram (a Reject says why it is not acceptable).
 
     `part` is 0-based like `sdfr.wire.Update.part`; on the wire it is ``part+1/parts``.

@@ -131,7 +131,7 @@ class LinkShape:
         return [name for name in NETEM_ONLY if getattr(self, name)]
 
 
-def netem_options(shape: LinkShape) -> dict[str, Any]:
+def netem_options(shape: LinkShape) -> dict[str, object]:
     """Keyword arguments of pyroute2's `tc(..., kind="netem")` for `shape`.
 
     pyroute2 takes delay and jitter in microseconds, percentages as floats,
@@ -153,7 +153,7 @@ def netem_options(shape: LinkShape) -> dict[str, Any]:
     return opts
 
 
-def tbf_options(rate: int) -> dict[str, Any]:
+def tbf_options(rate: int) -> dict[str, object]:
     """Keyword arguments of pyroute2's `tc(..., kind="tbf")` for `rate` bits per second.
 
     The bucket holds 10 ms of traffic but at least two full frames, or it

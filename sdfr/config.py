@@ -327,7 +327,7 @@ def _coerce(name: str, raw: Any) -> Any:
         raise ConfigError(f"{name}: expected {kind.__name__}, got {raw!r}") from None
 
 
-def load_toml(path: Path) -> dict[str, Any]:
+def load_toml(path: Path) -> dict[str, object]:
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:

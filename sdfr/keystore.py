@@ -24,7 +24,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
 
 from sdfr.auth import KEY_BYTES, MODES, OPEN, Keyring, Mode, key_id
 from sdfr.errors import ConfigError, SdfrError
@@ -169,7 +168,7 @@ class StoredKeyring:
     keyring: Keyring = OPEN
     installed: Mapping[str, float] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         ring = self.keyring
         return {
             "version": FORMAT_VERSION,

@@ -8,7 +8,7 @@ import re
 import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Annotated, Any
+from typing import Annotated
 
 import msgspec
 from msgspec import Meta
@@ -93,7 +93,7 @@ class ServiceOutput(msgspec.Struct, forbid_unknown_fields=True):
     attributes: Attributes
 
 
-def json_schemas() -> dict[str, Any]:
+def json_schemas() -> dict[str, object]:
     """The JSON Schemas of the service models, by name (`ServiceInput`, `Service`), with
     references into an OpenAPI document's components."""
     _, schemas = msgspec.json.schema_components(
@@ -157,7 +157,7 @@ class Service:
     url: str | None = None
     attributes: Mapping[str, AttrValue] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "id": self.id,
             "name": self.name,
@@ -245,7 +245,7 @@ class PeerRecord:
         """The same record with its times moved by `offset` seconds (core clock <-> epoch)."""
         return replace(self, first_seen=self.first_seen + offset, last_seen=self.last_seen + offset)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "robot_id": self.robot_id,
             "address": self.address,

@@ -117,7 +117,7 @@ class DiscoveryStatus:
     state: StateDir = field(default_factory=StateDir)
     format: int = FORMAT
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return dataclasses.asdict(self)
 
     @classmethod

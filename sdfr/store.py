@@ -348,7 +348,7 @@ class Store:
             tmp.write_text(_dumps(status))
             tmp.replace(self.status_path)
 
-    def read_status(self) -> dict[str, Any]:
+    def read_status(self) -> dict[str, object]:
         try:
             obj = json.loads(self.status_path.read_text())
         except (OSError, ValueError):

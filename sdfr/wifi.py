@@ -28,7 +28,6 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from sdfr.config import WIFI_SECRET_MIN, Config
 from sdfr.errors import ConfigError, SdfrError
@@ -84,7 +83,7 @@ class WifiPlan:
     def command_lines(self) -> list[str]:
         return [shlex.join(argv) for argv in self.commands]
 
-    def to_json(self, show_key: bool = False) -> dict[str, Any]:
+    def to_json(self, show_key: bool = False) -> dict[str, object]:
         return {
             "iface": self.iface,
             "fleet": self.fleet,

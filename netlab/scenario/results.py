@@ -27,7 +27,7 @@ class CheckResult:
     def result(self) -> str:
         return {True: "ok", False: "FAILED", None: "skipped"}[self.ok]
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "step": self.step,
             "kind": self.kind,
@@ -67,7 +67,7 @@ class RunResult:
     def failed(self) -> list[CheckResult]:
         return [c for c in self.checks if c.ok is False]
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> dict[str, object]:
         return {
             "scenario": self.scenario,
             "status": self.status,

@@ -319,7 +319,7 @@ def to_range(v: object) -> tuple[float, float]:
     return (to_float(v[0]), to_float(v[1]))
 
 
-def to_table(v: object) -> dict[str, Any]:
+def to_table(v: object) -> dict[str, object]:
     if not isinstance(v, dict):
         raise Bad(f"expected a table, got {v!r}")
     return dict(v)

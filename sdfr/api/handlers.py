@@ -7,7 +7,6 @@ import secrets
 import time
 from collections.abc import Iterable
 from dataclasses import replace
-from typing import Any
 
 from aiohttp import web
 
@@ -148,7 +147,7 @@ def _flag(request: web.Request, name: str) -> bool:
     return FLAG_VALUES[raw]
 
 
-def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, Any]:
+def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, object]:
     return {
         "neighbors": [
             neighbor_json(p, p.services) for p in peers if include_unreachable or p.reachable
@@ -212,7 +211,7 @@ async def history(request: web.Request) -> web.Response:
 # -- handlers: this robot ----------------------------------------------------------------------
 
 
-def _discovery_json(disc: DiscoveryState) -> dict[str, Any]:
+def _discovery_json(disc: DiscoveryState) -> dict[str, object]:
     s = disc.status
     return {
         "up": disc.up,
@@ -328,7 +327,7 @@ def _need_unix_socket(request: web.Request) -> None:
         )
 
 
-def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, Any]:
+def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, object]:
     ring = stored.keyring
     status = state.discovery().status
     received = {} if status is None else status.auth.received

@@ -15,11 +15,11 @@ def _ref(name: str) -> dict[str, str]:
     return {"$ref": f"#/components/schemas/{name}"}
 
 
-def _json_content(schema: dict[str, Any]) -> dict[str, Any]:
+def _json_content(schema: dict[str, Any]) -> dict[str, object]:
     return {"application/json": {"schema": schema}}
 
 
-def _answer(text: str, schema: str) -> dict[str, Any]:
+def _answer(text: str, schema: str) -> dict[str, object]:
     return {"description": text, "content": _json_content(_ref(schema))}
 
 
@@ -58,7 +58,7 @@ TAGS = [
 ]
 
 
-def openapi_document() -> dict[str, Any]:
+def openapi_document() -> dict[str, object]:
     """The OpenAPI 3.1 description of `create_app`'s routes."""
     nullable_number = {"type": ["number", "null"]}
     neighbor_properties: dict[str, Any] = {

@@ -115,7 +115,7 @@ def discovery_state(status: DiscoveryStatus | None, now: float | None = None) ->
 # -- cached views of the store -----------------------------------------------------------------
 
 
-def neighbor_json(peer: PeerRecord, services: Iterable[Service]) -> dict[str, Any]:
+def neighbor_json(peer: PeerRecord, services: Iterable[Service]) -> dict[str, object]:
     return {
         "robot_id": peer.robot_id,
         "address": peer.address,
