@@ -30,7 +30,7 @@ MAX_ATTR_VALUE = 256
 
 # -- the JSON form of a service: one typed model --------------------------------------------------
 # Validation (`Service.from_json`, for the API, the store and what peers send) and the API's
-# OpenAPI schemas (`json_schemas`) are both made from these types: a limit is written here once.
+# OpenAPI schemas (`sdfr.api.models`) are both made from these types: a limit is written here once.
 
 
 def _whole(regex: re.Pattern[str]) -> str:
@@ -91,18 +91,6 @@ class ServiceOutput(msgspec.Struct, forbid_unknown_fields=True):
     type: ServiceType
     url: ServiceUrl | None
     attributes: Attributes
-
-
-def json_schemas() -> dict[str, object]:
-    """The JSON Schemas of the service models, by name (`ServiceInput`, `Service`), with
-    references into an OpenAPI document's components."""
-    _, schemas = msgspec.json.schema_components(
-        [ServiceInput, ServiceOutput], ref_template="#/components/schemas/{name}"
-    )
-    schemas["Service"] = schemas.pop("ServiceOutput")
-    for schema in schemas.values():
-        schema.pop("title", None)
-    return schemas
 
 
 #: What a field must be, said when it is not.

@@ -6,7 +6,7 @@ from typing import Any
 
 from sdfr import __version__
 from sdfr.api.handlers import FLAG_VALUES
-from sdfr.model import json_schemas
+from sdfr.api.models import components
 
 # -- the OpenAPI document ----------------------------------------------------------------------
 
@@ -60,178 +60,7 @@ TAGS = [
 
 def openapi_document() -> dict[str, object]:
     """The OpenAPI 3.1 description of `create_app`'s routes."""
-    nullable_number = {"type": ["number", "null"]}
-    neighbor_properties: dict[str, Any] = {
-        "robot_id": {"type": "string"},
-        "address": {"type": "string", "description": "IPv4 address on the fleet network"},
-        "reachable": {"type": "boolean"},
-        "indicator": {
-            **nullable_number,
-            "description": "Connection indicator: success rate 0-1 of recent unicast pings",
-        },
-        "rtt_ms": {**nullable_number, "description": "Mean round-trip time of recent pings"},
-        "last_seen": {"type": "number", "description": "Unix time the robot was last heard"},
-        "services": {"type": "array", "items": _ref("Service")},
-    }
-    neighbor = {
-        "type": "object",
-        "required": ["robot_id", "address", "reachable", "indicator", "rtt_ms", "services"],
-        "properties": neighbor_properties,
-    }
-    peer_record = {
-        "type": "object",
-        "required": ["robot_id", "address", "reachable", "boot_id", "version", "services"],
-        "properties": {
-            **neighbor_properties,
-            "location": {"type": "string", "description": "URL of its description"},
-            "boot_id": {"type": "integer"},
-            "version": {"type": "integer", "description": "Version of its service set"},
-            "first_seen": {"type": "number"},
-        },
-    }
-    schemas: dict[str, Any] = {
-        **json_schemas(),  # ServiceInput and Service: from the one typed model
-        "Error": {
-            "type": "object",
-            "required": ["error", "field"],
-            "properties": {
-                "error": {"type": "string"},
-                "field": {"type": ["string", "null"]},
-            },
-        },
-        "Published": {
-            "type": "object",
-            "required": ["id", "service", "version"],
-            "properties": {
-                "id": {"type": "string"},
-                "service": _ref("Service"),
-                "version": {"type": "integer"},
-            },
-        },
-        "Services": {
-            "type": "object",
-            "required": ["services", "version"],
-            "properties": {
-                "services": {"type": "array", "items": _ref("Service")},
-                "version": {
-                    "type": "integer",
-                    "description": "Bumped by every publish and unpublish",
-                },
-            },
-        },
-        "Neighbor": neighbor,
-        "Neighbors": {
-            "type": "object",
-            "required": ["neighbors"],
-            "properties": {"neighbors": {"type": "array", "items": _ref("Neighbor")}},
-        },
-        "PeerRecord": peer_record,
-        "History": {
-            "type": "object",
-            "required": ["robots"],
-            "properties": {"robots": {"type": "array", "items": _ref("PeerRecord")}},
-        },
-        "Self": {
-            "type": "object",
-            "required": ["robot_id", "fleet", "address", "version", "services", "discovery"],
-            "properties": {
-                "robot_id": {"type": ["string", "null"]},
-                "fleet": {"type": "integer"},
-                "iface": {"type": ["string", "null"]},
-                "address": {"type": "string"},
-                "boot_id": {"type": ["integer", "null"]},
-                "version": {"type": "integer"},
-                "location": {"type": ["string", "null"]},
-                "software": {"type": "string"},
-                "services": {"type": "array", "items": _ref("Service")},
-                "discovery": {
-                    "type": "object",
-                    "required": ["up"],
-                    "properties": {
-                        "up": {"type": "boolean"},
-                        "heartbeat_age": nullable_number,
-                        "pid": {"type": ["integer", "null"]},
-                        "iface": {"type": ["string", "null"]},
-                        "started": nullable_number,
-                        "announced_version": {"type": ["integer", "null"]},
-                        "peers_reachable": {"type": ["integer", "null"]},
-                        "peers_known": {"type": ["integer", "null"]},
-                    },
-                },
-            },
-        },
-        "Health": {
-            "type": "object",
-            "required": [
-                "status",
-                "api",
-                "discovery",
-                "discovery_heartbeat_age",
-                "discovery_error",
-                "state",
-                "state_error",
-                "auth",
-                "warnings",
-            ],
-            "properties": {
-                "status": {
-                    "enum": ["ok", "warning", "degraded"],
-                    "description": "degraded: the discovery layer is down or failing, or the "
-                    "state directory cannot be written (503); warning: up, with warnings",
-                },
-                "api": {"const": "up"},
-                "discovery": {
-                    "enum": ["up", "failing", "down"],
-                    "description": "failing: alive, but its work keeps failing or it cannot "
-                    "announce this robot's services (see discovery_error)",
-                },
-                "discovery_heartbeat_age": nullable_number,
-                "discovery_error": {"type": ["string", "null"]},
-                "state": {
-                    "enum": ["ok", "full", "read-only", "error"],
-                    "description": "Whether the state directory can be written (publishes "
-                    "need it); not ok answers 503 with the discovery layer up",
-                },
-                "state_error": {"type": ["string", "null"]},
-                "auth": {
-                    "enum": ["open", "accept", "sign", "enforce", None],
-                    "description": "The keyring's mode; open: no fleet key",
-                },
-                "warnings": {
-                    "type": "array",
-                    "items": {"type": "string"},
-                    "description": "e.g. another daemon claims this robot's id",
-                },
-            },
-        },
-        "Keys": {
-            "type": "object",
-            "required": ["mode", "primary", "keyed", "ssdp_interop", "keys"],
-            "properties": {
-                "mode": {"enum": ["open", "accept", "sign", "enforce"]},
-                "primary": {"type": ["string", "null"], "description": "The key that signs"},
-                "keyed": {"type": "boolean"},
-                "ssdp_interop": {"type": "boolean"},
-                "keys": {
-                    "type": "array",
-                    "items": {
-                        "type": "object",
-                        "required": ["id", "primary", "installed", "received"],
-                        "properties": {
-                            "id": {"type": "string", "description": "8 hex characters"},
-                            "primary": {"type": "boolean"},
-                            "installed": nullable_number,
-                            "received": {
-                                "type": "integer",
-                                "description": "Datagrams verified with it since the "
-                                "discovery layer started",
-                            },
-                        },
-                    },
-                },
-            },
-        },
-    }
+    schemas = components()
     key_id_param = [{"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}]
     unix_only = (
         "Only on the unix socket STATE_DIR/api.sock (403 over TCP). Never returns key material."
@@ -363,16 +192,7 @@ def openapi_document() -> dict[str, object]:
                 "use in mode accept.",
                 "requestBody": {
                     "required": True,
-                    "content": _json_content(
-                        {
-                            "type": "object",
-                            "required": ["key"],
-                            "additionalProperties": False,
-                            "properties": {
-                                "key": {"type": "string", "description": "base64, 32 bytes"}
-                            },
-                        }
-                    ),
+                    "content": _json_content(_ref("KeyInstall")),
                 },
                 "responses": {
                     "201": _answer("Installed", "Keys"),
@@ -409,14 +229,7 @@ def openapi_document() -> dict[str, object]:
                 "description": unix_only,
                 "requestBody": {
                     "required": True,
-                    "content": _json_content(
-                        {
-                            "type": "object",
-                            "required": ["mode"],
-                            "additionalProperties": False,
-                            "properties": {"mode": {"enum": ["accept", "sign", "enforce"]}},
-                        }
-                    ),
+                    "content": _json_content(_ref("KeyMode")),
                 },
                 "responses": {
                     "200": _answer("The keyring", "Keys"),
