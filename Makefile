@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-netem check fmt bench bench-auth bench-flood bench-traffic netlab clean distclean
+.PHONY: venv test test-netem check fmt bench bench-auth bench-flood bench-traffic netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -62,6 +62,20 @@ bench-traffic: $(STAMP)
 
 netlab: $(STAMP)
 	$(BIN)/python -m netlab.demo
+
+# The robot image sdfr-robot:<version> from this checkout (installs and starts Docker's
+# engine when missing; builds a Debian base when no registry can be reached).
+image: $(STAMP)
+	bash scripts/image.sh
+
+# A compose fleet of ROBOTS robot containers on this host (compose/compose.yaml).
+ROBOTS ?= 3
+compose-up: image
+	bash scripts/compose.sh up $(ROBOTS)
+
+# Remove the compose fleet: its containers, network and volumes.
+compose-down:
+	bash scripts/compose.sh down
 
 clean:
 	find . -path ./$(VENV) -prune -o -type d -name __pycache__ -exec rm -rf {} +
