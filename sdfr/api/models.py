@@ -51,8 +51,8 @@ class Neighbors(Struct):
     neighbors: list[Neighbor]
 
 
-class PeerRecord(Struct):
-    """A robot of the history map."""
+class PeerJson(Struct):
+    """A robot of the history map (`sdfr.model.PeerRecord` as the API shows it)."""
 
     robot_id: str
     address: str
@@ -68,7 +68,7 @@ class PeerRecord(Struct):
 
 
 class History(Struct):
-    robots: list[PeerRecord]
+    robots: list[PeerJson]
 
 
 class DiscoveryInfo(Struct):
@@ -168,7 +168,7 @@ MODELS = (
     KeyMode,
 )
 #: Component names other than the class's own.
-RENAMED = {"ServiceOutput": "Service"}
+RENAMED = {"ServiceOutput": "Service", "PeerJson": "PeerRecord"}
 
 
 def components() -> dict[str, Any]:
