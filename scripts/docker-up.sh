@@ -6,6 +6,7 @@
 set -euo pipefail
 
 PIDFILE=/run/sdfr-dockerd.pid
+STATE=/run/sdfr-dockerd.state
 LOG=/var/log/sdfr-dockerd.log
 
 need=()
@@ -34,6 +35,13 @@ if [ "$(id -u)" -ne 0 ]; then
     echo "docker-up: no Docker engine answers, and starting one needs root" >&2
     exit 1
 fi
+# What dockerd changes on the host, as it was, for docker-down.sh to put back: its bridge,
+# br_netfilter's sysctl (bridged traffic through iptables) and the FORWARD chain's policy.
+{
+    if ip link show docker0 >/dev/null 2>&1; then echo "docker0=1"; else echo "docker0=0"; fi
+    echo "nf_call=$(cat /proc/sys/net/bridge/bridge-nf-call-iptables 2>/dev/null || echo absent)"
+    echo "forward=$(iptables -S FORWARD 2>/dev/null | sed -n 's/^-P FORWARD //p')"
+} >"$STATE"
 echo "docker-up: starting dockerd (log $LOG)"
 setsid dockerd >"$LOG" 2>&1 </dev/null &
 echo $! >"$PIDFILE"

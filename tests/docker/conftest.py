@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from sdfr import __version__
+
 REPO = Path(__file__).resolve().parents[2]
 SKIP = os.environ.get("SDFR_SKIP_DOCKER") == "1"
 
@@ -34,15 +36,40 @@ def run(*argv: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
     )  # fmt: skip
 
 
+IMAGE = "sdfr-robot"
+TAGS = (f"{IMAGE}:{__version__}", f"{IMAGE}:latest")
+
+
+def _present(tag: str) -> bool:
+    return run("docker", "image", "inspect", tag).returncode == 0
+
+
 @pytest.fixture(scope="session")
 def image() -> Iterator[str]:
-    """The robot image, built from this checkout (Docker started first when needed)."""
+    """The robot image, built from this checkout (Docker started first when needed).  Tags
+    the session made are removed after it, with the layers they leave dangling; the Debian
+    base (sdfr-base:local) is kept, for the next build on this machine."""
     if os.geteuid() != 0:
         pytest.fail("the docker tier needs root (set SDFR_SKIP_DOCKER=1 to skip it)")
+    up = run("bash", "scripts/docker-up.sh", timeout=900)
+    if up.returncode != 0:
+        pytest.fail(f"Docker cannot run here:\n{up.stdout}{up.stderr}")
+    had = {tag for tag in TAGS if _present(tag)}
     try:
         res = run("bash", "scripts/image.sh", timeout=1800)
         if res.returncode != 0:
             pytest.fail(f"cannot build the robot image:\n{res.stdout}{res.stderr}")
-        yield "sdfr-robot:latest"
+        yield TAGS[-1]
     finally:
+        made = [tag for tag in TAGS if tag not in had and _present(tag)]
+        if made:
+            run("docker", "image", "rm", *made)
+        run(
+            "docker",
+            "image",
+            "prune",
+            "-f",
+            "--filter",
+            f"label=org.opencontainers.image.title={IMAGE}",
+        )
         run("bash", "scripts/docker-down.sh")
