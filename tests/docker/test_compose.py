@@ -1,5 +1,6 @@
-"""A compose fleet of robot containers: they find each other and each other's services, stop
-with a Byebye, and `compose down` leaves no container, network or volume behind."""
+"""A compose fleet of robot containers: they find each other and each other's services, keep
+their registrations through a restart and a re-created container, and `compose down`
+leaves no container, network or volume behind."""
 
 from __future__ import annotations
 
@@ -32,6 +33,20 @@ def sdfr(project: str, index: int, *args: str) -> dict[str, object]:
     obj = json.loads(out)
     assert isinstance(obj, dict)
     return obj
+
+
+def containers(project: str) -> list[str]:
+    label = f"label=com.docker.compose.project={project}"
+    return run("docker", "ps", "-aq", "--filter", label).stdout.split()
+
+
+def volumes_of(project: str) -> list[str]:
+    """The volumes the project's containers use (their state dirs: anonymous volumes)."""
+    ids = containers(project)
+    if not ids:
+        return []
+    fmt = '{{range .Mounts}}{{if eq .Type "volume"}}{{.Name}} {{end}}{{end}}'
+    return run("docker", "inspect", "-f", fmt, *ids).stdout.split()
 
 
 def leftovers(project: str) -> list[str]:
@@ -92,6 +107,29 @@ def test_three_robots_in_compose_list_each_other_and_leave_nothing(image: str) -
             return [n["robot_id"] for n in found] == [ids[1]] or f"found {found}"  # type: ignore[union-attr, index]
 
         wait("the camera of robot 1 seen from robot 2", camera_seen, 5)
+
+        # Registrations live in the state volume: a restart and a re-created container keep them.
+        def own_services() -> bool | str:
+            res = compose_run(
+                project, "exec", "-T", "--index", "1", "robot", "sdfr", "--json", "services"
+            )
+            if res.returncode != 0:
+                return res.stderr.strip()
+            names = [s["name"] for s in json.loads(res.stdout)["services"]]
+            return names == ["front camera"] or f"robot 1 has {names}"
+
+        number_1 = run(
+            "docker", "ps", "-aq", "--filter", "label=com.docker.compose.container-number=1"
+        )
+        first = [c for c in containers(project) if c in number_1.stdout.split()]
+        assert len(first) == 1, first
+        assert run("docker", "restart", first[0]).returncode == 0
+        wait("robot 1's service after docker restart", own_services, 30)
+        compose(project, "recreate", str(ROBOTS))
+        wait("robot 1's service in its re-created container", own_services, 30)
     finally:
+        volumes = volumes_of(project)
         compose(project, "down")
-    assert leftovers(project) == []
+    assert len(volumes) == ROBOTS  # each robot's state volume, kept through the re-creation
+    left = [v for v in volumes if run("docker", "volume", "inspect", v).returncode == 0]
+    assert leftovers(project) == [] and left == [], left
