@@ -32,24 +32,6 @@ _DOORS = {
 }
 
 
-#: (method, path) -> (operationId, tag): what a generated client calls each operation.
-OPERATIONS = {
-    ("get", "/services"): ("listServices", "services"),
-    ("post", "/services"): ("publishService", "services"),
-    ("delete", "/services/{id}"): ("unpublishService", "services"),
-    ("get", "/neighbors"): ("listNeighbors", "discovery"),
-    ("get", "/neighbors/search"): ("searchNeighbors", "discovery"),
-    ("get", "/history"): ("listHistory", "discovery"),
-    ("get", "/self"): ("getSelf", "robot"),
-    ("get", "/health"): ("getHealth", "robot"),
-    ("get", "/metrics"): ("getMetrics", "robot"),
-    ("get", "/openapi.json"): ("getOpenApi", "robot"),
-    ("get", "/keys"): ("listKeys", "keys"),
-    ("post", "/keys"): ("installKey", "keys"),
-    ("post", "/keys/{id}/use"): ("useKey", "keys"),
-    ("delete", "/keys/{id}"): ("removeKey", "keys"),
-    ("put", "/keys/mode"): ("setKeyMode", "keys"),
-}
 TAGS = [
     {"name": "services", "description": "This robot's registrations"},
     {"name": "discovery", "description": "Which robots are reachable, and what they offer"},
@@ -68,10 +50,14 @@ def openapi_document() -> dict[str, object]:
     paths: dict[str, Any] = {
         "/services": {
             "get": {
+                "operationId": "listServices",
+                "tags": ["services"],
                 "summary": "This robot's registrations",
                 "responses": {"200": _answer("The local services", "Services")},
             },
             "post": {
+                "operationId": "publishService",
+                "tags": ["services"],
                 "summary": "Publish a service",
                 "requestBody": {"required": True, "content": _json_content(_ref("ServiceInput"))},
                 "responses": {
@@ -100,6 +86,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/services/{id}": {
             "delete": {
+                "operationId": "unpublishService",
+                "tags": ["services"],
                 "summary": "Unpublish a service",
                 "parameters": [
                     {"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}
@@ -109,6 +97,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/neighbors": {
             "get": {
+                "operationId": "listNeighbors",
+                "tags": ["discovery"],
                 "summary": "Robots reachable now, with their services",
                 "parameters": [
                     {
@@ -126,6 +116,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/neighbors/search": {
             "get": {
+                "operationId": "searchNeighbors",
+                "tags": ["discovery"],
                 "summary": "Reachable robots offering matching services (only those services)",
                 "description": "At least one criterion. Any number of `attr.KEY=VALUE` "
                 "parameters, one per attribute; a service matches when its type and every "
@@ -155,18 +147,24 @@ def openapi_document() -> dict[str, object]:
         },
         "/history": {
             "get": {
+                "operationId": "listHistory",
+                "tags": ["discovery"],
                 "summary": "Every robot ever seen, reachable or not",
                 "responses": {"200": _answer("The history map", "History")},
             }
         },
         "/self": {
             "get": {
+                "operationId": "getSelf",
+                "tags": ["robot"],
                 "summary": "This robot: identity, address, services, discovery state",
                 "responses": {"200": _answer("This robot", "Self")},
             }
         },
         "/health": {
             "get": {
+                "operationId": "getHealth",
+                "tags": ["robot"],
                 "summary": "Liveness of the two layers",
                 "responses": {
                     "200": _answer("Both layers up", "Health"),
@@ -176,17 +174,23 @@ def openapi_document() -> dict[str, object]:
         },
         "/openapi.json": {
             "get": {
+                "operationId": "getOpenApi",
+                "tags": ["robot"],
                 "summary": "This document",
                 "responses": {"200": {"description": "OpenAPI 3.1", "content": _json_content({})}},
             }
         },
         "/keys": {
             "get": {
+                "operationId": "listKeys",
+                "tags": ["keys"],
                 "summary": "The fleet keyring: key ids, the one that signs, the mode",
                 "description": unix_only,
                 "responses": {"200": _answer("The keyring", "Keys"), "403": _ERROR},
             },
             "post": {
+                "operationId": "installKey",
+                "tags": ["keys"],
                 "summary": "Install a key (accepted at once, used to sign after `use`)",
                 "description": unix_only + " The first key of a robot without any is put to "
                 "use in mode accept.",
@@ -204,6 +208,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/keys/{id}/use": {
             "post": {
+                "operationId": "useKey",
+                "tags": ["keys"],
                 "summary": "Sign with this key from now on",
                 "description": unix_only,
                 "parameters": key_id_param,
@@ -212,6 +218,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/keys/{id}": {
             "delete": {
+                "operationId": "removeKey",
+                "tags": ["keys"],
                 "summary": "Stop accepting this key (never the one in use)",
                 "description": unix_only,
                 "parameters": key_id_param,
@@ -225,6 +233,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/keys/mode": {
             "put": {
+                "operationId": "setKeyMode",
+                "tags": ["keys"],
                 "summary": "accept, sign or enforce (the steps of moving a fleet to a key)",
                 "description": unix_only,
                 "requestBody": {
@@ -241,6 +251,8 @@ def openapi_document() -> dict[str, object]:
         },
         "/metrics": {
             "get": {
+                "operationId": "getMetrics",
+                "tags": ["robot"],
                 "summary": "Prometheus metrics",
                 "responses": {
                     "200": {
@@ -262,8 +274,6 @@ def openapi_document() -> dict[str, object]:
     }
     for path, ops in paths.items():
         for method, op in ops.items():
-            op["operationId"], tag = OPERATIONS[(method, path)]
-            op["tags"] = [tag]
             if path.startswith("/keys"):  # a GET only reads the keyring
                 errors = keyring_errors if method != "get" else {"500": keyring_errors["500"]}
                 op["responses"].update(errors)
