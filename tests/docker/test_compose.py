@@ -7,11 +7,11 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import time
 
 import pytest
 
 from tests.docker.conftest import run
+from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
 ROBOTS = 3
@@ -58,20 +58,6 @@ def leftovers(project: str) -> list[str]:
     return found
 
 
-def wait(what: str, check: object, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    last: object = None
-    while time.monotonic() < deadline:
-        try:
-            last = check()  # type: ignore[operator]
-        except AssertionError as exc:
-            last = exc
-        if last is True:
-            return
-        time.sleep(0.5)
-    pytest.fail(f"{what}: not within {timeout} s (last: {last!r})")
-
-
 def test_three_robots_in_compose_list_each_other_and_leave_nothing(image: str) -> None:
     project = f"sdfrtest{os.getpid()}"
     try:
@@ -88,7 +74,7 @@ def test_three_robots_in_compose_list_each_other_and_leave_nothing(image: str) -
                 ids[i] = str(json.loads(res.stdout)["robot_id"])
             return True
 
-        wait("every robot's sdfrd answers", all_answer, 30)
+        poll("every robot's sdfrd answers", all_answer, 30)
         assert len(set(ids.values())) == ROBOTS  # each its container's hostname
 
         def all_list_all() -> bool | str:
@@ -98,7 +84,7 @@ def test_three_robots_in_compose_list_each_other_and_leave_nothing(image: str) -
                     return f"{me} lists {sorted(seen)}"
             return True
 
-        wait("all robots list each other", all_list_all, 30)
+        poll("all robots list each other", all_list_all, 30)
         compose(project, "exec", "-T", "--index", "1", "robot",
                 "sdfr", "publish", "front camera", "sensor.camera")  # fmt: skip
 
@@ -106,7 +92,7 @@ def test_three_robots_in_compose_list_each_other_and_leave_nothing(image: str) -
             found = sdfr(project, 2, "search", "--type", "sensor.camera")["neighbors"]
             return [n["robot_id"] for n in found] == [ids[1]] or f"found {found}"  # type: ignore[union-attr, index]
 
-        wait("the camera of robot 1 seen from robot 2", camera_seen, 5)
+        poll("the camera of robot 1 seen from robot 2", camera_seen, 5)
 
         # Registrations live in the state volume: a restart and a re-created container keep them.
         def own_services() -> bool | str:
@@ -124,9 +110,9 @@ def test_three_robots_in_compose_list_each_other_and_leave_nothing(image: str) -
         first = [c for c in containers(project) if c in number_1.stdout.split()]
         assert len(first) == 1, first
         assert run("docker", "restart", first[0]).returncode == 0
-        wait("robot 1's service after docker restart", own_services, 30)
+        poll("robot 1's service after docker restart", own_services, 30)
         compose(project, "recreate", str(ROBOTS))
-        wait("robot 1's service in its re-created container", own_services, 30)
+        poll("robot 1's service in its re-created container", own_services, 30)
     finally:
         volumes = volumes_of(project)
         compose(project, "down")

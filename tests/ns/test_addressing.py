@@ -15,26 +15,12 @@ from netlab.analysis import arp_counts_by_sender, read_run
 from netlab.capture import Capture
 from netlab.lab import Lab
 from sdfr.addressing import candidates
-from sdfr.errors import ApiError
+from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
 
 BEACON = 1.0
 FLEET = 1
-
-
-def poll(what: str, pred: Callable[[], Any], timeout: float) -> float:
-    start = time.monotonic()
-    last: Any = None
-    while time.monotonic() - start <= timeout:
-        try:
-            last = pred()
-        except ApiError as exc:
-            last = exc
-        if last is True or (last and not isinstance(last, (Exception, str))):
-            return time.monotonic() - start
-        time.sleep(0.02)
-    pytest.fail(f"{what}: not within {timeout} s (last: {last!r})")
 
 
 def derived(mac: str) -> str:
