@@ -7,11 +7,13 @@ both remove the same things the same way:
    namespaces, or with the recorded start time, so a reused pid is never
    hit) gets SIGTERM (its process group: sdfrd says Byebye), then SIGKILL
    after a grace period;
-2. anything still running inside the lab's namespaces is ours by
+2. its containers (robots of the docker runtime) are removed: those the
+   manifest records and any labelled with the lab's name;
+3. anything still running inside the lab's namespaces is ours by
    definition and is killed by pid;
-3. the namespaces are deleted, recorded ones and any named ``nl-<lab>-*``;
+4. the namespaces are deleted, recorded ones and any named ``nl-<lab>-*``;
    the bridge, veths, nft table and qdiscs go with them;
-4. a workdir the lab made itself is removed, then the manifest; the last
+5. a workdir the lab made itself is removed, then the manifest; the last
    lab to go puts back the host's ARP table limits (`netlab.hostlimits`).
 
 Nothing is matched by process name or command line.
@@ -28,7 +30,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from netlab import hostlimits, kernel, manifest, naming
+from netlab import docker, hostlimits, kernel, manifest, naming
 from netlab.errors import KernelError
 from netlab.manifest import Manifest, ProcRecord
 from sdfr import procfs
@@ -37,12 +39,7 @@ TERM_GRACE = 5.0
 KILL_WAIT = 5.0
 
 
-def start_time(pid: int) -> int | None:
-    """When `pid` started, in clock ticks since boot (stat field 22)."""
-    fields = procfs.stat_fields(pid)
-    return int(fields[19]) if fields is not None and len(fields) > 19 else None
-
-
+start_time = procfs.start_time
 running = procfs.running
 
 
@@ -122,18 +119,47 @@ def kill_inside(inodes: set[tuple[int, int]]) -> list[int]:
 class SweepResult:
     processes: list[int] = field(default_factory=list)
     namespaces: list[str] = field(default_factory=list)
+    containers: list[str] = field(default_factory=list)
     workdir: str | None = None
     manifest: bool = False
 
     @property
     def empty(self) -> bool:
-        return not (self.processes or self.namespaces or self.workdir or self.manifest)
+        return not (
+            self.processes or self.namespaces or self.containers or self.workdir or self.manifest
+        )
+
+
+def remove_containers(name: str, record: Manifest | None) -> list[str]:
+    """Remove the lab's containers: the recorded ones and any labelled with its name.
+
+    Docker is not asked about a lab whose manifest records none (a namespace lab); without a
+    manifest it is asked if it answers.  KernelError if containers are recorded and Docker
+    does not answer (they cannot be removed now: the manifest stays for another try).
+    """
+    recorded = list(record.containers) if record is not None else []
+    if record is not None and not recorded:
+        return []
+    reason = docker.why_not()
+    if reason is not None:
+        if recorded:
+            raise KernelError(
+                f"its containers ({', '.join(recorded)}) cannot be removed: {reason}; "
+                f"`netlab down {name}` again once Docker runs"
+            )
+        return []
+    try:
+        return docker.remove(name)
+    except docker.DockerError as exc:
+        raise KernelError(str(exc)) from None
 
 
 def leftovers(name: str) -> list[str]:
-    """What of lab `name` is still there: its namespaces, and its manifest (as text); empty
-    once the lab is down."""
+    """What of lab `name` is still there: its namespaces, its containers (when Docker
+    answers) and its manifest (as text); empty once the lab is down."""
     left = [f"namespace {ns}" for ns in kernel.list_ns(naming.prefix(name))]
+    if docker.why_not() is None:
+        left += [f"container {c}" for c in docker.labelled(name)]
     if manifest.load(name) is not None:
         left.append(f"manifest {manifest.path_of(name)}")
     return left
@@ -150,9 +176,13 @@ def sweep(name: str, record: Manifest | None, grace: float = TERM_GRACE) -> Swee
     inodes = {i for i in (kernel.ns_inode(ns) for ns in namespaces) if i is not None}
     if record is not None:
         result.processes += stop_processes(record.processes, inodes, grace)
+    errors: list[str] = []
+    try:
+        result.containers = remove_containers(name, record)
+    except KernelError as exc:
+        errors.append(str(exc))
     if inodes:
         result.processes += [p for p in kill_inside(inodes) if p not in result.processes]
-    errors: list[str] = []
     left = pids_inside(inodes) if inodes else []
     if left:
         errors.append(f"processes {left} inside the lab's namespaces did not die")

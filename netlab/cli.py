@@ -1,10 +1,12 @@
 """The `netlab` command: bring labs up and down, look at them, run commands in robots.
 
-    netlab up NAME --robots N [--seed S] [--radius R] [--spacing D] [--start]
+    netlab up NAME --robots N [--runtime namespace|docker] [--seed S] [--radius R]
+              [--spacing D] [--start]
     netlab down NAME
     netlab status [NAME]
     netlab exec NAME ROBOT -- CMD...
-    netlab run FILE|NAME [--runs DIR] [--quick] [--no-capture] [--no-report] [--lab NAME]
+    netlab run FILE|NAME [--runtime namespace|docker] [--runs DIR] [--quick] [--no-capture]
+               [--no-report] [--lab NAME]
     netlab run --list
     netlab capture NAME ROBOT|medium --out FILE [--duration S]
     netlab report RUN_DIR
@@ -28,12 +30,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from netlab import cleanup, kernel, manifest, naming
+from netlab import cleanup, docker, kernel, manifest, naming
 from netlab.doctor import format_report, probe
 from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError
 from netlab.lab import Lab
 from netlab.manifest import Manifest
 from netlab.ranges import UnitDisc
+from netlab.robots import RUNTIMES
 
 
 def _lab_name(text: str) -> str:
@@ -73,17 +76,35 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _runtime_options(p: argparse.ArgumentParser, default: str | None) -> None:
+    p.add_argument(
+        "--runtime",
+        choices=RUNTIMES,
+        default=default,
+        help="robots as network namespaces, or as docker containers of the robot image "
+        f"(default: {default or 'the scenario says, else namespace'})",
+    )
+    p.add_argument(
+        "--image",
+        default=docker.DEFAULT_IMAGE,
+        help=f"the robot image of --runtime docker (default {docker.DEFAULT_IMAGE}; "
+        "`make image` builds it)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="netlab",
-        description="A fleet of SDfR robots on this machine: one network namespace per robot, "
-        "running the real sdfrd, on a shared medium. Needs root.",
+        description="A fleet of SDfR robots on this machine: one network namespace per robot "
+        "(a namespace, or a container's), running the real sdfrd, on a shared medium. "
+        "Needs root.",
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     up = sub.add_parser("up", help="create a lab and leave it running")
     up.add_argument("name", type=_lab_name, metavar="NAME", help="lab name: 1-8 of a-z 0-9")
     up.add_argument("--robots", type=_positive_int, required=True, metavar="N")
+    _runtime_options(up, "namespace")
     up.add_argument("--seed", type=int, default=0, help="seed of the robots' MACs (default 0)")
     up.add_argument(
         "--radius", type=_metres, default=50.0, help="radio range in metres (default 50)"
@@ -112,7 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     status.add_argument("name", type=_lab_name, nargs="?", metavar="NAME")
     status.add_argument("--json", action="store_true", help="machine-readable output")
 
-    ex = sub.add_parser("exec", help="run a command inside a robot's namespace")
+    ex = sub.add_parser(
+        "exec", help="run a command inside a robot (its namespace, or its container)"
+    )
     ex.add_argument("name", type=_lab_name, metavar="NAME")
     ex.add_argument("robot", metavar="ROBOT")
     ex.add_argument("cmd", nargs=argparse.REMAINDER, metavar="-- CMD...")
@@ -130,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="scenario file, or the name of a bundled scenario (--list shows them)",
     )
     rn.add_argument("--list", action="store_true", help="list the bundled scenarios")
+    _runtime_options(rn, None)
     rn.add_argument(
         "--runs", default="runs", metavar="DIR", help="where run folders go (default runs/)"
     )
@@ -166,13 +190,16 @@ def cmd_up(args: argparse.Namespace) -> int:
         fleet=args.fleet,
         workdir=Path(args.workdir) if args.workdir else None,
         range_model=UnitDisc(args.radius),
+        runtime=args.runtime,
+        image=args.image,
     )
     t0 = time.monotonic()
     lab.up()
     try:
         names = [f"r{i + 1}" for i in range(args.robots)]
         lab.add_robots(names, {n: (i * args.spacing, 0.0) for i, n in enumerate(names)})
-        print(f"lab {args.name}: {args.robots} robots up in {time.monotonic() - t0:.2f} s")
+        kind = " (containers)" if args.runtime == "docker" else ""
+        print(f"lab {args.name}: {args.robots} robots{kind} up in {time.monotonic() - t0:.2f} s")
         if args.start:
             t1 = time.monotonic()
             opts: dict[str, Any] = {}
@@ -195,6 +222,8 @@ def cmd_down(args: argparse.Namespace) -> int:
         print(f"no lab {args.name}: nothing to remove")
         return 0
     parts = [f"{len(result.namespaces)} namespaces"]
+    if result.containers:
+        parts.append(f"{len(result.containers)} containers")
     if result.processes:
         parts.append(f"{len(result.processes)} processes")
     if result.workdir:
@@ -225,6 +254,7 @@ def lab_status(record: Manifest) -> dict[str, Any]:
         "medium": naming.air_ns(record.name) in present,
         "robots": {
             name: {
+                "runtime": r.runtime,
                 "namespace": r.ns,
                 "present": r.ns in present,
                 "address": r.address,
@@ -275,7 +305,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         for name, r in lab["robots"].items():
             ns = "ok" if r["present"] else "MISSING"
             daemon = f"sdfrd pid {r['sdfrd']}" if r["sdfrd"] else "no sdfrd"
-            print(f"  {name:<12} {r['address']:<16} {r['mac']}  namespace {ns}  {daemon}")
+            kind = "container" if r["runtime"] == "docker" else "namespace"
+            print(f"  {name:<12} {r['address']:<16} {r['mac']}  {kind} {ns}  {daemon}")
     for lab_name, nss in sorted(stray.items()):
         print(f"left behind (no manifest): {', '.join(nss)}; `netlab down {lab_name}` removes them")
     return 0
@@ -297,7 +328,10 @@ def cmd_exec(args: argparse.Namespace) -> int:
         )
     if robot.ns not in kernel.list_ns():
         raise NetlabError(f"the namespace {robot.ns} of robot {args.robot} is gone")
-    argv = kernel.ns_argv(robot.ns, cmd)
+    if robot.runtime == "docker":
+        argv = docker.exec_argv(robot.ns, cmd, stdin=True, tty=sys.stdin.isatty())
+    else:
+        argv = kernel.ns_argv(robot.ns, cmd)
     sys.stdout.flush()
     os.execvp(argv[0], argv)
 
@@ -332,6 +366,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         quick=args.quick,
         capture="none" if args.no_capture else None,
         report=not args.no_report,
+        runtime=args.runtime,
+        image=args.image,
     )
     if result.status == "skipped":
         return EXIT_SKIPPED
@@ -398,7 +434,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    caps = probe()
+    caps = probe(docker=True)
     print(format_report(caps))
     return 0 if caps.lab else 1
 

@@ -12,7 +12,7 @@ import functools
 import os
 import shutil
 import subprocess
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from pyroute2 import IPRoute, netns
 from pyroute2.netlink.exceptions import NetlinkError
@@ -36,6 +36,8 @@ class Capabilities:
     netem: bool = False
     tbf: bool = False
     gc_thresh3: int = 0  # the host-wide ARP table limit (0: unknown)
+    #: Container robots (`--runtime docker`): None when not asked (`probe(docker=True)`).
+    docker: bool | None = None
     why: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -55,8 +57,22 @@ def _nft(ns: str, text: str) -> None:
     )
 
 
-def probe() -> Capabilities:
-    """Try each capability in a namespace of its own; never raises."""
+def probe(*, docker: bool = False) -> Capabilities:
+    """Try each capability in a namespace of its own; never raises.  `docker`: also whether
+    container robots can run (Docker answers and has the robot image)."""
+    caps = _probe()
+    if not docker:
+        return caps
+    from netlab import docker as engine
+
+    try:
+        engine.require_image(engine.DEFAULT_IMAGE)
+    except engine.DockerError as exc:
+        return replace(caps, docker=False, why={**caps.why, "docker": str(exc)})
+    return replace(caps, docker=True)
+
+
+def _probe() -> Capabilities:
     why: dict[str, str] = {}
     if os.geteuid() != 0:
         return Capabilities(why={"root": "not running as root: netlab needs root (sudo)"})
@@ -190,6 +206,16 @@ def report(caps: Capabilities) -> list[tuple[str, bool, str]]:
             "rate limits without netem" if caps.tbf else "no rate limit unless netem is present",
         ),
     ]
+    if caps.docker is not None:
+        rows.append(
+            (
+                "docker + robot image",
+                caps.docker,
+                "robots as containers (--runtime docker)"
+                if caps.docker
+                else "no container robots (`make image` installs Docker and builds the image)",
+            )
+        )
     if caps.gc_thresh3:
         rows.append(
             (

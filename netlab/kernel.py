@@ -26,6 +26,15 @@ def create_ns(name: str) -> IPRoute:
         return IPRoute(netns=name, flags=os.O_CREAT | os.O_EXCL)
 
 
+def attach_ns(name: str, pid: int) -> None:
+    """Name the network namespace of process `pid` `name` (as `ip netns attach` does): a
+    container's namespace then serves as a lab's like one netlab made."""
+    if name in netns.listnetns():
+        raise KernelError(f"network namespace {name} exists already")
+    with kernel_errors(f"naming the network namespace of process {pid} {name}"):
+        netns.attach(name, pid)
+
+
 def open_ns(name: str) -> IPRoute:
     """A netlink socket inside the existing namespace `name`."""
     if name not in netns.listnetns():

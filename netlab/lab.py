@@ -1,4 +1,8 @@
-"""A lab: robots in network namespaces on one medium, running the real sdfrd.
+"""A lab: robots on one medium, running the real sdfrd, each in its own network namespace.
+
+Robots are namespaces (``runtime="namespace"``, the default) or containers of the robot
+image (``runtime="docker"``); see `netlab.robots` for the kinds.  The medium, shaping,
+captures and scenarios work on any kind.
 
     with Lab("demo", seed=1) as lab:
         for i in range(3):
@@ -21,18 +25,16 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
-from ipaddress import IPv4Interface
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, cast
 
-from netlab import cleanup, hostlimits, kernel, manifest, naming, shaping
+from netlab import cleanup, docker, hostlimits, kernel, manifest, naming, shaping
 from netlab.cleanup import SweepResult
 from netlab.doctor import capabilities
 from netlab.errors import (
@@ -47,6 +49,7 @@ from netlab.manifest import Manifest, ProcRecord, RobotRecord
 from netlab.medium import Medium
 from netlab.mobility import MobilityModel, walk
 from netlab.ranges import Links, Pos, RangeModel, Topology, with_link_loss
+from netlab.robots import RUNTIMES, Daemon, NamespaceKind, Robot, RobotKind, kind_for
 from netlab.shaping import LinkShape
 from sdfr.client import Client
 from sdfr.errors import ApiError
@@ -56,40 +59,18 @@ STOP_TIMEOUT = 10.0
 SUN_PATH_MAX = 107  # a unix socket path longer than this cannot be bound
 
 
-@dataclass(frozen=True, slots=True)
-class Robot:
-    """One robot of a lab: its namespace, its link and where its daemon keeps its files."""
-
-    name: str
-    index: int
-    ns: str
-    port: str  # its port on the medium bridge
-    mac: str
-    address: IPv4Interface
-    workdir: Path  # its daemon's state and log
-
-    @property
-    def ip(self) -> str:
-        return str(self.address.ip)
-
-    @property
-    def state_dir(self) -> Path:
-        return self.workdir / "state"
-
-    @property
-    def log(self) -> Path:
-        return self.workdir / "sdfrd.log"
-
-    @property
-    def api_socket(self) -> Path:
-        return self.state_dir / "api.sock"
-
-
 RobotRef = str | Robot
 
 
+__all__ = ["Lab", "Robot", "RobotRef"]
+
+
 class Lab:
-    """A fleet of namespace robots on one medium; a context manager (or `up()`/`down()`)."""
+    """A fleet of robots on one medium; a context manager (or `up()`/`down()`).
+
+    `runtime` is the kind of robot `add_robot` makes unless told otherwise: "namespace" or
+    "docker" (containers of `image`, which must be here: ``make image`` builds it).
+    """
 
     def __init__(
         self,
@@ -100,10 +81,17 @@ class Lab:
         fleet: int = 1,
         range_model: RangeModel | None = None,
         addressing: str = "manual",
+        runtime: str = "namespace",
+        image: str = docker.DEFAULT_IMAGE,
     ) -> None:
         self.name = naming.check_lab_name(name)
         if addressing not in ("manual", "auto"):
             raise NetlabError(f"addressing: must be manual or auto, got {addressing!r}")
+        if runtime not in RUNTIMES:
+            raise NetlabError(f"runtime: one of {', '.join(RUNTIMES)}, got {runtime!r}")
+        self.runtime = runtime
+        self.image = image
+        self._kinds: dict[str, RobotKind] = {}
         #: manual: the lab gives each robot a static address; auto: robots start without one
         #: and sdfrd derives, probes and defends its own (`sdfrd --addressing auto`).
         self.addressing = addressing
@@ -121,7 +109,7 @@ class Lab:
         self._batch = 0
         self._shapes: dict[str, LinkShape] = {}
         self._nft_loss: dict[str, float] = {}
-        self._daemons: dict[str, subprocess.Popen[bytes]] = {}
+        self._daemons: dict[str, Daemon] = {}
         self._daemon_opts: dict[str, dict[str, Any]] = {}
         self._procs: list[subprocess.Popen[Any]] = []
         self._clients: dict[str, Client] = {}
@@ -161,10 +149,16 @@ class Lab:
         self._record = record
         self._state = "up"
         try:
-            left = kernel.list_ns(naming.prefix(self.name))
+            left = []
+            if namespaces := kernel.list_ns(naming.prefix(self.name)):
+                left.append(f"namespaces {', '.join(namespaces)}")
+            if self.runtime == "docker":
+                docker.require_image(self.image)
+                if containers := docker.labelled(self.name):
+                    left.append(f"containers {', '.join(containers)}")
             if left:
                 raise LabExistsError(
-                    f"namespaces {', '.join(left)} of a lab {self.name!r} exist without a "
+                    f"{' and '.join(left)} of a lab {self.name!r} exist without a "
                     f"runner; `netlab down {self.name}` removes them"
                 )
             if self._workdir_arg is None:
@@ -249,11 +243,27 @@ class Lab:
                 return mac
             salt += 1
 
-    def add_robot(self, name: str, *, pos: Pos = (0.0, 0.0), mac: str | None = None) -> Robot:
-        """A namespace with eth0 on the medium, lo up and a multicast route.
+    def kind(self, runtime: str) -> RobotKind:
+        """The robot kind of `runtime` ("namespace" or "docker"), one per lab."""
+        if runtime not in self._kinds:
+            if runtime == "docker" and self.runtime != "docker":
+                docker.require_image(self.image)
+            self._kinds[runtime] = kind_for(runtime, self.image)
+        return self._kinds[runtime]
+
+    def add_robot(
+        self,
+        name: str,
+        *,
+        pos: Pos = (0.0, 0.0),
+        mac: str | None = None,
+        runtime: str | None = None,
+    ) -> Robot:
+        """A robot whose namespace has eth0 on the medium, lo up and a multicast route.
 
         `mac` defaults to one derived from the lab's seed and the robot's index; a
         given one may repeat another robot's (to script an address collision).
+        `runtime` defaults to the lab's: a lab may mix kinds.
         """
         self._check_up()
         assert self._record is not None
@@ -265,6 +275,8 @@ class Lab:
         hostlimits.ensure(self._other_labs_entries + hostlimits.mesh_entries(len(self._robots) + 1))
         index = len(self._robots)
         mac = naming.check_mac(mac) if mac is not None else self._auto_mac(index)
+        runtime = runtime or self.runtime
+        kind = self.kind(runtime)
         robot = Robot(
             name=name,
             index=index,
@@ -273,26 +285,30 @@ class Lab:
             mac=mac,
             address=naming.address_for(self.fleet, index),
             workdir=self.workdir / name,
+            runtime=runtime,
         )
         self.topology.add(name, pos)  # validates pos before anything is created
         self._robots[name] = robot
         self._macs.add(mac)
         self._record.namespaces.append(robot.ns)
+        self._record.containers += robot.containers
         self._record.robots[name] = RobotRecord(
-            robot.index, robot.ns, robot.port, robot.mac, str(robot.address)
+            robot.index, robot.ns, robot.port, robot.mac, str(robot.address), runtime
         )
         self._save()
         try:
-            self._plumb(robot)
+            self._plumb(robot, kind)
         except BaseException:
             # Leave the lab as it was: no half-made robot. Its veth goes with its namespace.
             with contextlib.suppress(NetlabError):
-                kernel.remove_ns(robot.ns)
+                kind.discard(self.name, robot)
             del self._robots[name]
             self.topology.positions.pop(name, None)
             if mac not in (r.mac for r in self._robots.values()):
                 self._macs.discard(mac)
             self._record.namespaces.remove(robot.ns)
+            for container in robot.containers:
+                self._record.containers.remove(container)
             del self._record.robots[name]
             self._save()
             raise
@@ -300,8 +316,9 @@ class Lab:
         self.setup_seconds[name] = time.perf_counter() - t0
         return robot
 
-    def _plumb(self, robot: Robot) -> None:
-        ipr = kernel.create_ns(robot.ns)
+    def _plumb(self, robot: Robot, kind: RobotKind) -> None:
+        kind.create(self.name, robot)
+        ipr = kernel.open_ns(robot.ns)
         try:
             with kernel.inside(robot.ns):
                 # Before eth0 exists, so that it inherits the default: IPv4 only.
@@ -370,10 +387,14 @@ class Lab:
     def live_addresses(self, ref: RobotRef) -> list[str]:
         """The IPv4 addresses eth0 has right now (with `addressing="auto"`, sdfrd's choice)."""
         robot = self.robot(ref)
-        res = self.exec(robot, ["ip", "-4", "-o", "addr", "show", "dev", naming.ROBOT_IFACE])
-        if res.returncode != 0:
-            raise NetlabError(f"cannot read the addresses of robot {robot.name}: {res.stderr}")
-        return [line.split()[3].split("/")[0] for line in res.stdout.splitlines()]
+        ipr = kernel.open_ns(robot.ns)
+        try:
+            with kernel_errors(f"reading the addresses of robot {robot.name}"):
+                eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
+                found = ipr.get_addr(family=socket.AF_INET, index=eth)
+                return [str(a.get_attr("IFA_ADDRESS")) for a in found]
+        finally:
+            ipr.close()
 
     def positions(self) -> dict[str, Pos]:
         return dict(self.topology.positions)
@@ -462,13 +483,11 @@ class Lab:
 
     # -- processes -----------------------------------------------------------------------
 
-    def _record_proc(
-        self, robot: Robot, proc: subprocess.Popen[Any], role: str, argv: Sequence[str]
-    ) -> None:
+    def _record_proc(self, robot: Robot, pid: int, role: str, argv: Sequence[str]) -> None:
         assert self._record is not None
         self._record.processes = [p for p in self._record.processes if cleanup.running(p.pid)]
         self._record.processes.append(
-            ProcRecord(proc.pid, cleanup.start_time(proc.pid) or 0, robot.name, role, list(argv))
+            ProcRecord(pid, cleanup.start_time(pid) or 0, robot.name, role, list(argv))
         )
         self._save()
 
@@ -483,16 +502,19 @@ class Lab:
             raise ValueError("lab processes always run in a session of their own")
         kw.setdefault("stdin", subprocess.DEVNULL)
         kw["start_new_session"] = True  # one process group per process: stop/kill reach all of it
+        full = self.kind(robot.runtime).exec_argv(robot, argv, stdin=_reads_stdin(kw))
         with kernel_errors(f"starting {argv[0] if argv else argv!r} in robot {robot.name}"):
-            proc: subprocess.Popen[Any] = subprocess.Popen(kernel.ns_argv(robot.ns, argv), **kw)
+            proc: subprocess.Popen[Any] = subprocess.Popen(full, **kw)
         self._procs.append(proc)
-        self._record_proc(robot, proc, "process", argv)
+        self._record_proc(robot, proc.pid, "process", argv)
         return proc
 
     def exec(
         self, ref: RobotRef, argv: Sequence[str], **kw: Any
     ) -> subprocess.CompletedProcess[Any]:
-        """Run `argv` inside the robot to completion (output captured as text, 30 s timeout)."""
+        """Run `argv` inside the robot to completion (output captured as text, 30 s timeout).
+
+        Inside a container robot it runs in the robot's container (its image's programs)."""
         self._check_up()
         robot = self.robot(ref)
         kw.setdefault("stdin", subprocess.DEVNULL)
@@ -500,10 +522,11 @@ class Lab:
             kw.setdefault("capture_output", True)
         kw.setdefault("text", True)
         kw.setdefault("timeout", 30)
-        return subprocess.run(kernel.ns_argv(robot.ns, argv), **kw)
+        full = self.kind(robot.runtime).exec_argv(robot, argv, stdin=_reads_stdin(kw))
+        return subprocess.run(full, **kw)
 
-    def sdfrd_argv(self, ref: RobotRef, **options: Any) -> list[str]:
-        """The sdfrd command line for the robot: `options` are its flags (beacon_interval=0.5)."""
+    def sdfrd_options(self, ref: RobotRef, **options: Any) -> dict[str, Any]:
+        """sdfrd's options for the robot by name: the lab's, updated with `options`."""
         robot = self.robot(ref)
         opts: dict[str, Any] = {
             "iface": naming.ROBOT_IFACE,
@@ -513,11 +536,12 @@ class Lab:
             "addressing": self.addressing,
         }
         opts.update(options)
-        argv = [sys.executable, "-m", "sdfr.daemon.supervisor"]
-        for key, value in opts.items():
-            if value is not None:
-                argv += ["--" + key.replace("_", "-"), str(value)]
-        return argv
+        return opts
+
+    def sdfrd_argv(self, ref: RobotRef, **options: Any) -> list[str]:
+        """The command line of sdfrd as a host process in the robot's namespace (what a
+        namespace robot runs): `options` are its flags (beacon_interval=0.5)."""
+        return NamespaceKind().argv(self.sdfrd_options(ref, **options))
 
     def start(self, ref: RobotRef, *, timeout: float = START_TIMEOUT, **options: Any) -> None:
         """Run sdfrd in the robot and wait until its discovery layer is up."""
@@ -547,21 +571,14 @@ class Lab:
             )
         with kernel_errors(f"creating {robot.state_dir}"):
             robot.state_dir.mkdir(parents=True, exist_ok=True)
-        argv = self.sdfrd_argv(robot, **options)
-        with open(robot.log, "ab") as log:
-            log.write(f"--- netlab: {' '.join(argv)}\n".encode())
-            log.flush()
-            with kernel_errors(f"starting sdfrd in robot {robot.name}"):
-                proc = subprocess.Popen(
-                    kernel.ns_argv(robot.ns, argv),
-                    stdin=subprocess.DEVNULL,
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                    start_new_session=True,
-                )
-        self._daemons[robot.name] = proc
+        kind = self.kind(robot.runtime)
+        started = kind.spawn(self.name, robot, self.sdfrd_options(robot, **options))
+        self._daemons[robot.name] = started.daemon
         self._daemon_opts[robot.name] = dict(options)
-        self._record_proc(robot, proc, "sdfrd", argv)
+        self._procs += started.helpers
+        self._record_proc(robot, started.daemon.pid, "sdfrd", started.argv)
+        for helper in started.helpers:
+            self._record_proc(robot, helper.pid, "log", cast(list[str], helper.args))
 
     def wait_healthy(self, ref: RobotRef, timeout: float = START_TIMEOUT) -> None:
         """Wait until the robot's sdfrd reports discovery up; DaemonError (and stop it) if not."""
@@ -635,7 +652,7 @@ class Lab:
         opts = {**self._daemon_opts.get(robot.name, {}), **options}
         self.start(robot, timeout=timeout, **opts)
 
-    def _running_daemon(self, robot: Robot) -> subprocess.Popen[bytes]:
+    def _running_daemon(self, robot: Robot) -> Daemon:
         proc = self._daemons.get(robot.name)
         if proc is None or proc.poll() is not None:
             raise LabStateError(f"sdfrd is not running on robot {robot.name}")
@@ -659,6 +676,11 @@ class Lab:
         except OSError:
             return "(no log)"
         return "\n".join(text.splitlines()[-lines:])
+
+
+def _reads_stdin(kw: Mapping[str, Any]) -> bool:
+    """Whether a process started with Popen/run keywords `kw` is given a standard input."""
+    return "input" in kw or kw.get("stdin") not in (None, subprocess.DEVNULL)
 
 
 def _status(code: int) -> str:

@@ -40,6 +40,7 @@ class RobotRecord:
     port: str
     mac: str
     address: str  # with prefix length, e.g. 10.1.0.1/16
+    runtime: str = "namespace"  # or "docker": its containers are named after `ns`
 
 
 @dataclass(slots=True)
@@ -49,7 +50,7 @@ class ProcRecord:
     pid: int
     start: int
     robot: str
-    role: str  # "sdfrd" or "process"
+    role: str  # "sdfrd", "process", or "log" (a container's log follower)
     argv: list[str]
 
 
@@ -66,6 +67,8 @@ class Manifest:
     namespaces: list[str] = field(default_factory=list)
     robots: dict[str, RobotRecord] = field(default_factory=dict)
     processes: list[ProcRecord] = field(default_factory=list)
+    #: Every container of the lab, recorded before it is created.
+    containers: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, object]:
         return {"version": VERSION, **asdict(self)}
@@ -85,6 +88,7 @@ class Manifest:
                 namespaces=[str(n) for n in data.get("namespaces", [])],
                 robots={str(k): RobotRecord(**v) for k, v in dict(data.get("robots", {})).items()},
                 processes=[ProcRecord(**p) for p in data.get("processes", [])],
+                containers=[str(c) for c in data.get("containers", [])],
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise NetlabError(f"unreadable lab manifest: {exc!r}") from None

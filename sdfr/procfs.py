@@ -26,6 +26,13 @@ def running(pid: int, proc: Path = PROC) -> bool:
     return fields is not None and bool(fields) and fields[0] != "Z"
 
 
+def start_time(pid: int, proc: Path = PROC) -> int | None:
+    """When `pid` started, in clock ticks since boot (stat field 22): tells a process from a
+    later one that reuses its pid."""
+    fields = stat_fields(pid, proc)
+    return int(fields[19]) if fields is not None and len(fields) > 19 else None
+
+
 def parent_map(proc: Path = PROC) -> dict[int, list[int]]:
     """parent pid -> its children's pids, for every process now."""
     out: dict[int, list[int]] = {}

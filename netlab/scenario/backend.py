@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from netlab.clock import REAL, Clock
+from netlab.docker import DEFAULT_IMAGE
 from netlab.errors import NetlabError
 from netlab.observe import ClientLike
 from netlab.ranges import Pos, RangeModel
@@ -88,6 +89,8 @@ class LabSpec:
     fleet: int
     range_model: RangeModel
     addressing: str = "manual"
+    runtime: str = "namespace"
+    image: str = DEFAULT_IMAGE
 
 
 def _real_lab(spec: LabSpec) -> LabLike:
@@ -100,6 +103,8 @@ def _real_lab(spec: LabSpec) -> LabLike:
         if "addressing" not in inspect.signature(Lab).parameters:
             raise NetlabError(f"this netlab's Lab cannot do addressing = {spec.addressing}")
         extra["addressing"] = spec.addressing
+    if spec.runtime != "namespace":
+        extra.update(runtime=spec.runtime, image=spec.image)
     return Lab(spec.name, seed=spec.seed, fleet=spec.fleet, range_model=spec.range_model, **extra)
 
 
@@ -111,12 +116,23 @@ def _real_client(lab: LabLike, robot: str) -> ClientLike:
     return Client(unix_socket=lab.robot(robot).api_socket, timeout=2.0)
 
 
+def sdfrd_flags(spec: LabSpec) -> frozenset[str]:
+    """The options `sdfrd --help` lists, as the lab's robots run it (the host's sdfrd, or the
+    robot image's), without dashes."""
+    if spec.runtime == "docker":
+        from netlab import docker
+
+        docker.require_image(spec.image)
+        run = (docker.binary(), "run", "--rm", "--network", "none")
+        return _flags((*run, "--entrypoint", "/opt/sdfr/bin/sdfrd", spec.image, "--help"))
+    return _flags((sys.executable, "-m", "sdfr.daemon.supervisor", "--help"))
+
+
 @cache
-def sdfrd_flags() -> frozenset[str]:
-    """The options `sdfrd --help` lists (as the lab runs it), without dashes."""
+def _flags(argv: tuple[str, ...]) -> frozenset[str]:
     try:
         res = subprocess.run(
-            [sys.executable, "-m", "sdfr.daemon.supervisor", "--help"],
+            argv,
             capture_output=True,
             text=True,
             timeout=60,
@@ -133,7 +149,7 @@ class Backend:
 
     make_lab: Callable[[LabSpec], LabLike] = _real_lab
     connect: Callable[[LabLike, str], ClientLike] = _real_client
-    flags: Callable[[], frozenset[str]] = sdfrd_flags
+    flags: Callable[[LabSpec], frozenset[str]] = sdfrd_flags
     #: Whether tcpdump can run in the lab's namespaces.
     can_capture: bool = True
     #: Time: the engine's deadlines, sleeps and samples.

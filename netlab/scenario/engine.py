@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from netlab import naming, procstat
 from netlab.analysis import count_updates, read_run
+from netlab.docker import DEFAULT_IMAGE
 from netlab.errors import NetlabError
 from netlab.observe import Observer, Probe, Sample, TruthLog, TruthState, indicators_before
 from netlab.ranges import UnitDisc
@@ -52,7 +53,7 @@ class Run:
         sc: Scenario,
         backend: Backend,
         run_dir: Path,
-        lab_name: str,
+        spec: LabSpec,
         quick: bool,
         say: Callable[[str], None],
     ) -> None:
@@ -63,7 +64,6 @@ class Run:
         self.run_dir = run_dir
         self.quick = quick
         self._say = say
-        spec = LabSpec(lab_name, sc.seed, sc.fleet, UnitDisc(sc.radius), sc.addressing)
         self.lab = backend.make_lab(spec)
         self.truth = TruthLog(clock=self.clock.time)
         self.running: list[str] = []
@@ -447,6 +447,7 @@ class Run:
             "description": self.sc.description,
             "file": self.sc.source,
             "robots": len(self.sc.names),
+            "runtime": self.sc.runtime,
             "beacon_interval_s": self.sc.beacon,
             "quick": self.quick,
             "status": result.status,
@@ -498,23 +499,38 @@ def run(
     report: bool = True,
     say: Callable[[str], None] = _say,
     backend: Backend | None = None,
+    runtime: str | None = None,
+    image: str = DEFAULT_IMAGE,
 ) -> RunResult:
     """Run `scenario` on a new lab (always taken down); progress goes to `say`.
 
     The run folder is `run_dir`, or a new ``runs/<name>-<time>``.  `quick` uses the steps'
-    `quick` durations; `capture` overrides the scenario's.  Skipped (status "skipped", with
-    the reason said) when sdfrd lacks an option the scenario needs.
+    `quick` durations; `capture` and `runtime` override the scenario's; `image` is the robot
+    image of the docker runtime.  Skipped (status "skipped", with the reason said) when
+    sdfrd lacks an option the scenario needs.
     """
     backend = backend or Backend()
     if capture is not None:
         scenario = replace(scenario, capture=capture)
+    if runtime is not None:
+        scenario = replace(scenario, runtime=runtime)
     if not backend.can_capture:
         scenario = replace(scenario, capture="none")
     head = (
-        f"scenario {scenario.name}: {len(scenario.names)} robots, beacon {scenario.beacon:g} s"
+        f"scenario {scenario.name}: {len(scenario.names)} robots"
+        f"{' (containers)' if scenario.runtime == 'docker' else ''}, beacon {scenario.beacon:g} s"
         f"{' (the product default is 10 s)' if scenario.beacon != PRODUCT_BEACON else ''}"
     )
-    reason = missing_requirements(scenario, backend.flags())
+    spec = LabSpec(
+        lab_name or default_lab_name(),
+        scenario.seed,
+        scenario.fleet,
+        UnitDisc(scenario.radius),
+        scenario.addressing,
+        scenario.runtime,
+        image,
+    )
+    reason = missing_requirements(scenario, backend.flags(spec))
     if reason is not None:
         say(f"{head}\n  SKIPPED: {reason}")
         return RunResult(
@@ -527,5 +543,5 @@ def run(
     folder = Path(run_dir).absolute() if run_dir is not None else new_run_dir(runs, scenario.name)
     folder.mkdir(parents=True, exist_ok=True)
     say(f"{head}{', quick' if quick else ''}; run folder {folder}")
-    engine = Run(scenario, backend, folder, lab_name or default_lab_name(), quick, say)
+    engine = Run(scenario, backend, folder, spec, quick, say)
     return engine.execute(report=report)

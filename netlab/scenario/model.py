@@ -13,6 +13,7 @@ from netlab.errors import NetlabError
 from netlab.mobility import HALL
 from netlab.observe import fmt_set
 from netlab.ranges import Pos
+from netlab.robots import RUNTIMES
 from netlab.scenario.spec import (
     KEYWORDS,
     Bad,
@@ -79,7 +80,8 @@ class Scenario:
     start.  `capture`: tcpdump on "all" (robots and medium), "robots", "medium" or "none".
     `sample`: seconds between the observer's samples.  `addressing`: "manual" (the lab gives
     each robot a static address) or "auto" (sdfrd derives its own from the MAC, checks and
-    defends it: ``sdfrd --addressing auto``; what makes a `Collision` collide).
+    defends it: ``sdfrd --addressing auto``; what makes a `Collision` collide).  `runtime`:
+    robots as "namespace"s or "docker" containers of the robot image (`netlab.robots`).
     """
 
     name: str
@@ -99,6 +101,7 @@ class Scenario:
     capture: str = "all"
     sample: float = 0.25
     addressing: str = "manual"
+    runtime: str = "namespace"
     #: Where it was read from, for messages.
     source: str | None = field(default=None, compare=False)
 
@@ -157,6 +160,8 @@ class Scenario:
         bounded(self.spacing, "spacing", 0.0)
         if self.addressing not in ADDRESSING:
             raise Bad(f"addressing: one of {', '.join(ADDRESSING)}, got {self.addressing!r}")
+        if self.runtime not in RUNTIMES:
+            raise Bad(f"runtime: one of {', '.join(RUNTIMES)}, got {self.runtime!r}")
         if self.capture not in CAPTURE_MODES:
             raise Bad(f"capture: one of {', '.join(CAPTURE_MODES)}, got {self.capture!r}")
         bounded(self.sample, "sample", 0.02, 60.0)

@@ -51,6 +51,9 @@ def image() -> Iterator[str]:
     base (sdfr-base:local) is kept, for the next build on this machine."""
     if os.geteuid() != 0:
         pytest.fail("the docker tier needs root (set SDFR_SKIP_DOCKER=1 to skip it)")
+    # A dockerd that answers already is someone else's (another session, the user's): it
+    # stays.  One this session starts is stopped after it.
+    ours = run("docker", "info").returncode != 0
     up = run("bash", "scripts/docker-up.sh", timeout=900)
     if up.returncode != 0:
         pytest.fail(f"Docker cannot run here:\n{up.stdout}{up.stderr}")
@@ -72,4 +75,5 @@ def image() -> Iterator[str]:
             "--filter",
             f"label=org.opencontainers.image.title={IMAGE}",
         )
-        run("bash", "scripts/docker-down.sh")
+        if ours:
+            run("bash", "scripts/docker-down.sh")

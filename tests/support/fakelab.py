@@ -205,7 +205,7 @@ def fake() -> Iterator[tuple[Backend, list[FakeLab]]]:
         return FakeClient(lab, robot)
 
     flags = frozenset({"beacon_interval", "miss_limit", "ping_window"})
-    yield Backend(make, connect, lambda: flags, can_capture=False), labs
+    yield Backend(make, connect, lambda spec: flags, can_capture=False), labs
     assert all(lab.state == "down" for lab in labs)
 
 

@@ -66,3 +66,21 @@ def test_others_leaves_out_a_damaged_record_that_is_not_ours(run_dir: Path) -> N
     assert [m.name for m in manifest.others("mine")] == ["fine"]
     with pytest.raises(NetlabError, match="is not JSON"):
         manifest.load("broken")  # asked for by name, it is still named as damaged
+
+
+def test_a_record_keeps_robot_kinds_and_containers_and_an_older_one_still_loads(
+    run_dir: Path,
+) -> None:
+    record = Manifest("c", containers=["nl-c-r1", "nl-c-r1.sdfrd"])
+    mac = "02:00:00:00:00:01"
+    record.robots["r1"] = RobotRecord(0, "nl-c-r1", "vr1", mac, "10.1.0.1/16", "docker")
+    manifest.claim(record)
+    loaded = manifest.load("c")
+    assert loaded == record
+    # A manifest written before robot kinds existed: namespace robots, no containers.
+    (run_dir / "old.json").write_text(
+        '{"version": 1, "name": "old", "robots": {"r1": {"index": 0, "ns": "nl-old-r1", '
+        '"port": "vr1", "mac": "02:00:00:00:00:01", "address": "10.1.0.1/16"}}}'
+    )
+    old = manifest.load("old")
+    assert old is not None and old.containers == [] and old.robots["r1"].runtime == "namespace"

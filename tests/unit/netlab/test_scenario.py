@@ -354,6 +354,7 @@ def test_bad_steps_are_refused_naming_the_step_and_the_field(steps: str, message
         ('name = "x"\nbeacon = 0', r"beacon: must be >= 0.01"),
         ('name = "x"\ncapture = "some"', r"capture: one of all, robots, medium, none"),
         ('name = "x"\naddressing = "dhcp"', r"addressing: one of manual, auto"),
+        ('name = "x"\nruntime = "podman"', r"runtime: one of namespace, docker, got 'podman'"),
         ('name = "x"\nlayout = "circle"', r"layout: one of line, random"),
         ('name = "x"\nspeed = 2', r"\[scenario\]: unknown field speed"),
         ('name = "no spaces"', r"name: 1-64 of letters"),
