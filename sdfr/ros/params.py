@@ -36,7 +36,7 @@ class NodeParams:
         try:
             split_api(self.api)
         except ValueError as exc:
-            raise ConfigError(f"parameter api: {exc}") from None
+            raise ConfigError(f"parameter {exc}") from None
         if not self.sdfrd_command.strip():
             raise ConfigError("parameter sdfrd_command: must name a program (e.g. sdfrd)")
         for name in ("sdfrd_command", "sdfrd_args"):
