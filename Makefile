@@ -77,6 +77,23 @@ compose-up: image
 compose-down:
 	bash scripts/compose.sh down
 
+# The ROS node's environments: .venv/ros2 (ROS 2 wheels from PyPI, sdfr_msgs built with cmake)
+# and .venv/ros1 (Debian's ROS 1, sdfr_msgs generated with genpy). Idempotent; root for apt.
+.PHONY: ros-setup test-ros bench-ros
+ros-setup: $(STAMP)
+	bash scripts/ros2-setup.sh
+	bash scripts/ros1-setup.sh
+
+# The two ROS tiers alone (make test runs them too; SDFR_SKIP_ROS=1 skips them).
+test-ros: $(STAMP)
+	$(BIN)/pytest -q tests/ros
+
+# Latency from ~/publish on one robot to the change on ~/neighbors of another, p50 over 50
+# changes, two netlab robots under ROS 2 (~1 min; root); JSON in runs/bench-ros.json.
+bench-ros: $(STAMP) ros-setup
+	mkdir -p runs
+	$(BIN)/python -m bench.ros_latency
+
 clean:
 	find . -path ./$(VENV) -prune -o -type d -name __pycache__ -exec rm -rf {} +
 	rm -rf .pytest_cache .mypy_cache .ruff_cache .hypothesis build dist
