@@ -36,6 +36,10 @@ def host_links() -> set[str]:
     return {line.split(":")[1].strip().split("@")[0] for line in out.splitlines()}
 
 
+def volumes() -> set[str]:
+    return set(run("docker", "volume", "ls", "-q").stdout.split())
+
+
 def nothing_left(name: str) -> list[str]:
     left = cleanup.leftovers(name)  # namespaces, labelled containers, the manifest
     left += [f"container {c}" for c in docker.labelled(name)]
@@ -45,13 +49,14 @@ def nothing_left(name: str) -> list[str]:
 @pytest.fixture
 def lab_name(image: str) -> Iterator[str]:
     """A unique lab name; the lab is taken down after the test whatever happened, and the
-    test fails if anything of it, or a new veth in the root namespace, is left."""
+    test fails if anything of it, or a new veth in the root namespace or a volume, is left."""
     name = unique_lab_name()
-    links = host_links()
+    links, vols = host_links(), volumes()
     yield name
     netlab("down", name)
     assert nothing_left(name) == []
     assert host_links() - links == set()
+    assert volumes() - vols == set()
 
 
 @pytest.mark.parametrize("scenario", ["partition-merge", "ip-collision"])
@@ -156,7 +161,7 @@ def test_a_robot_that_fails_half_way_leaves_nothing_and_touches_no_one_elses(
         still = docker.state(foreign)
         assert still is not None and still.running
     finally:
-        run("docker", "rm", "-f", foreign)
+        run("docker", "rm", "-f", "-v", foreign)
 
 
 RUNNER = """
