@@ -221,7 +221,8 @@ class Capture:
             self._reader.join(timeout=1.0)
 
     # -- internals ------------------------------------------------------------------------
-    def _argv(self) -> list[str]:
+    def argv(self) -> list[str]:
+        """The tcpdump command line (a path of "-" writes the pcap to standard output)."""
         argv = [
             self.tcpdump,
             "-i",
@@ -259,7 +260,7 @@ class Capture:
             raise CaptureError(f"cannot create {self.path.parent}: {exc}") from None
         try:
             self._proc = subprocess.Popen(
-                self._argv(),
+                self.argv(),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.PIPE,

@@ -1,14 +1,17 @@
 """The `netlab` command: bring labs up and down, look at them, run commands in robots.
 
-    netlab up NAME --robots N [--runtime namespace|docker] [--seed S] [--radius R]
+    netlab up NAME --robots N | -t FILE [--runtime namespace|docker] [--seed S] [--radius R]
               [--spacing D] [--start]
     netlab down NAME
     netlab status [NAME]
     netlab exec NAME ROBOT -- CMD...
+    netlab partition NAME GROUP GROUP...      (a group: r1,r2,...)
+    netlab merge NAME
+    netlab shape NAME ROBOT... [--loss %] [--delay MS] [--rate R] ... | --clear
     netlab run FILE|NAME [--runtime namespace|docker] [--runs DIR] [--quick] [--no-capture]
                [--no-report] [--lab NAME]
     netlab run --list
-    netlab capture NAME ROBOT|medium --out FILE [--duration S]
+    netlab capture NAME ROBOT|medium --out FILE|- [--filter BPF] [--duration S]
     netlab report RUN_DIR
     netlab doctor
 
@@ -22,21 +25,30 @@ netlab could not do it (the message says why) or a scenario's check failed,
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import os
+import signal
+import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from netlab import cleanup, docker, kernel, manifest, naming
+from netlab.capture import DEFAULT_BPF
 from netlab.doctor import format_report, probe
 from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError
 from netlab.lab import Lab
 from netlab.manifest import Manifest
 from netlab.ranges import UnitDisc
 from netlab.robots import RUNTIMES
+
+if TYPE_CHECKING:
+    from netlab.scenario import Scenario
 
 
 def _lab_name(text: str) -> str:
@@ -64,6 +76,13 @@ def _metres(text: str) -> float:
     if not value >= 0:
         raise argparse.ArgumentTypeError(f"must be >= 0 metres, got {text}")
     return value
+
+
+def _group(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"a group is robot names joined by commas, got {text!r}")
+    return names
 
 
 def _seconds(text: str) -> float:
@@ -101,21 +120,28 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    up = sub.add_parser("up", help="create a lab and leave it running")
-    up.add_argument("name", type=_lab_name, metavar="NAME", help="lab name: 1-8 of a-z 0-9")
-    up.add_argument("--robots", type=_positive_int, required=True, metavar="N")
-    _runtime_options(up, "namespace")
-    up.add_argument("--seed", type=int, default=0, help="seed of the robots' MACs (default 0)")
-    up.add_argument(
-        "--radius", type=_metres, default=50.0, help="radio range in metres (default 50)"
+    up = sub.add_parser(
+        "up",
+        help="create a lab and leave it running",
+        description="Create a lab and leave it running: N robots r1..rN, or the robots, kinds, "
+        "positions and medium of a topology file (a scenario file whose steps only lay out the "
+        "medium: partition, merge, move, quality, shape). Flags override the file.",
     )
+    up.add_argument("name", type=_lab_name, metavar="NAME", help="lab name: 1-8 of a-z 0-9")
+    how = up.add_mutually_exclusive_group(required=True)
+    how.add_argument("--robots", type=_positive_int, metavar="N", help="robots r1..rN")
+    how.add_argument(
+        "-t", "--topology", metavar="FILE", help="a topology (or scenario) file: see above"
+    )
+    _runtime_options(up, None)
+    up.add_argument("--seed", type=int, help="seed of the robots' MACs (default 0)")
+    up.add_argument("--radius", type=_metres, help="radio range in metres (default 50)")
     up.add_argument(
         "--spacing",
         type=_metres,
-        default=0.0,
         help="robots stand on a line this many metres apart (default 0: all in one spot)",
     )
-    up.add_argument("--fleet", type=int, default=1, help="fleet id 0-255 (default 1)")
+    up.add_argument("--fleet", type=int, help="fleet id 0-255 (default 1)")
     up.add_argument("--workdir", help="where daemons keep state and logs (default: a new /tmp dir)")
     up.add_argument("--start", action="store_true", help="start sdfrd on every robot")
     up.add_argument(
@@ -123,8 +149,34 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         metavar="S",
-        help="sdfrd's beacon interval with --start (default: sdfrd's)",
+        help="sdfrd's beacon interval with --start (default: the topology file's, else sdfrd's)",
     )
+
+    part = sub.add_parser(
+        "partition", help="cut a running lab's medium into groups (robots in none: one more)"
+    )
+    part.add_argument("name", type=_lab_name, metavar="NAME")
+    part.add_argument("groups", nargs="+", type=_group, metavar="GROUP", help="r1,r2,...")
+
+    merge = sub.add_parser("merge", help="end a running lab's partition")
+    merge.add_argument("name", type=_lab_name, metavar="NAME")
+
+    shp = sub.add_parser(
+        "shape",
+        help="shape robots' links in a running lab (both directions)",
+        description="Shape each robot's link, both directions: netem where the kernel has it; "
+        "without netem, loss goes through the medium and rate through tbf, and delay, jitter, "
+        "duplicate, reorder and corrupt are refused naming the missing module. The new shape "
+        "replaces the robot's old one; --clear removes it.",
+    )
+    shp.add_argument("name", type=_lab_name, metavar="NAME")
+    shp.add_argument("robots", nargs="+", metavar="ROBOT")
+    shp.add_argument("--delay", type=float, metavar="MS", help="delay in ms (default 0)")
+    shp.add_argument("--jitter", type=float, metavar="MS", help="jitter in ms, with a delay")
+    for what in ("loss", "duplicate", "reorder", "corrupt"):
+        shp.add_argument(f"--{what}", type=float, metavar="%", help=f"{what} in %% (default 0)")
+    shp.add_argument("--rate", metavar="R", help="rate in bit/s or like 1mbit (default none)")
+    shp.add_argument("--clear", action="store_true", help="remove all shaping")
 
     down = sub.add_parser("down", help="stop and remove a lab (also one whose runner died)")
     down.add_argument("name", type=_lab_name, metavar="NAME")
@@ -171,7 +223,19 @@ def build_parser() -> argparse.ArgumentParser:
     cap = sub.add_parser("capture", help="capture a robot's (or the medium's) traffic to pcap")
     cap.add_argument("name", type=_lab_name, metavar="NAME", help="a lab brought up with up")
     cap.add_argument("target", metavar="ROBOT|medium")
-    cap.add_argument("--out", required=True, metavar="FILE", help="pcap to write")
+    cap.add_argument(
+        "--out",
+        required=True,
+        metavar="FILE",
+        help="pcap to write; - streams it to standard output "
+        "(`netlab capture LAB r1 --out - | wireshark -k -i -`)",
+    )
+    cap.add_argument(
+        "--filter",
+        default=DEFAULT_BPF,
+        metavar="BPF",
+        help=f"what to capture, a tcpdump filter (default {DEFAULT_BPF!r}; '' for everything)",
+    )
     cap.add_argument(
         "--duration", type=_seconds, metavar="S", help="stop after S seconds (default: at Ctrl-C)"
     )
@@ -183,36 +247,119 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _topology(args: argparse.Namespace) -> Scenario:
+    """The lab `up` makes, as a scenario with no timeline: the file's, flags overriding it."""
+    from netlab import scenario
+
+    flags = {
+        key: getattr(args, key)
+        for key in ("seed", "fleet", "radius", "spacing", "runtime")
+        if getattr(args, key) is not None
+    }
+    try:
+        if args.topology is None:
+            return scenario.Scenario("up", robots=args.robots, **{"spacing": 0.0, **flags})
+        sc = scenario.load(args.topology)
+        scenario.check_layout(sc)
+        return replace(sc, **flags)
+    except scenario.ScenarioError as exc:
+        raise NetlabError(str(exc)) from None
+
+
 def cmd_up(args: argparse.Namespace) -> int:
+    from netlab import scenario
+
+    sc = _topology(args)
     lab = Lab(
         args.name,
-        seed=args.seed,
-        fleet=args.fleet,
+        seed=sc.seed,
+        fleet=sc.fleet,
         workdir=Path(args.workdir) if args.workdir else None,
-        range_model=UnitDisc(args.radius),
-        runtime=args.runtime,
+        range_model=UnitDisc(sc.radius),
+        addressing=sc.addressing,
+        runtime=sc.runtime,
         image=args.image,
     )
     t0 = time.monotonic()
     lab.up()
     try:
-        names = [f"r{i + 1}" for i in range(args.robots)]
-        lab.add_robots(names, {n: (i * args.spacing, 0.0) for i, n in enumerate(names)})
-        kind = " (containers)" if args.runtime == "docker" else ""
-        print(f"lab {args.name}: {args.robots} robots{kind} up in {time.monotonic() - t0:.2f} s")
+        scenario.add_robots(lab, sc)
+        kinds = {r.runtime for r in lab.robots.values()}
+        kind = (
+            " (containers)"
+            if kinds == {"docker"}
+            else " (some containers)"
+            if len(kinds) > 1
+            else ""
+        )
+        n = len(sc.names)
+        print(f"lab {args.name}: {n} robots{kind} up in {time.monotonic() - t0:.2f} s")
+        for line in scenario.lay_out(lab, sc):
+            print(f"  {line}")
         if args.start:
             t1 = time.monotonic()
-            opts: dict[str, Any] = {}
-            if args.beacon_interval is not None:
-                opts["beacon_interval"] = args.beacon_interval
-            lab.start_all(timeout=max(60.0, 2.0 * args.robots), **opts)
-            print(f"sdfrd healthy on {args.robots} robots in {time.monotonic() - t1:.2f} s")
+            opts: dict[str, Any] = dict(sc.sdfrd)
+            beacon = args.beacon_interval or (sc.beacon if args.topology else None)
+            if beacon is not None:
+                opts["beacon_interval"] = beacon
+            lab.start_all(timeout=max(60.0, 2.0 * n), **opts)
+            print(f"sdfrd healthy on {n} robots in {time.monotonic() - t1:.2f} s")
     except BaseException:
         lab.down()
         raise
     print(f"workdir {lab.workdir}")
     print(f"`netlab status {args.name}` shows it; `netlab down {args.name}` removes it")
     lab.detach()
+    return 0
+
+
+@contextlib.contextmanager
+def _attached(name: str) -> Iterator[Lab]:
+    """The running lab `name`, taken over for one change (`Lab.attach`), then left again."""
+    with manifest.locked(name):
+        lab = Lab.attach(name)
+        try:
+            yield lab
+        finally:
+            lab.detach()
+
+
+def _links_summary(lab: Lab) -> str:
+    links = lab.links()
+    pairs = {frozenset(p) for p in links}
+    return f"{len(pairs)} linked pairs of {len(lab.robots)} robots"
+
+
+def cmd_partition(args: argparse.Namespace) -> int:
+    with _attached(args.name) as lab:
+        lab.partition(args.groups)
+        rest = [r for r in lab.robots if not any(r in g for g in args.groups)]
+        groups = [",".join(g) for g in args.groups] + ([",".join(rest)] if rest else [])
+        print(f"lab {args.name}: partition {' | '.join(groups)}; {_links_summary(lab)}")
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace) -> int:
+    with _attached(args.name) as lab:
+        lab.merge()
+        print(f"lab {args.name}: merged; {_links_summary(lab)}")
+    return 0
+
+
+SHAPE_PARAMS = ("delay", "jitter", "loss", "duplicate", "reorder", "corrupt", "rate")
+
+
+def cmd_shape(args: argparse.Namespace) -> int:
+    params = {k: getattr(args, k) for k in SHAPE_PARAMS if getattr(args, k) is not None}
+    if args.clear == bool(params):
+        raise NetlabError("shape: give shaping parameters (--loss, --delay, ...) or --clear")
+    with _attached(args.name) as lab:
+        for robot in args.robots:
+            lab.robot(robot)  # all known before any is shaped
+        for robot in args.robots:
+            shape = lab.shape(robot, **params)
+            what = ", ".join(f"{k} {v}" for k, v in dataclasses.asdict(shape).items() if v)
+            print(f"lab {args.name}: {robot}: {what or 'no shaping'}")
     return 0
 
 
@@ -249,7 +396,7 @@ def lab_status(record: Manifest) -> dict[str, Any]:
     )
     return {
         "name": record.name,
-        "runner": {"pid": record.runner_pid, "alive": runner_alive},
+        "runner": {"pid": record.runner_pid, "alive": runner_alive, "detached": record.detached},
         "workdir": record.workdir,
         "medium": naming.air_ns(record.name) in present,
         "robots": {
@@ -298,7 +445,12 @@ def cmd_status(args: argparse.Namespace) -> int:
         print("no labs")
     for lab in labs:
         runner = lab["runner"]
-        who = f"runner pid {runner['pid']} {'alive' if runner['alive'] else 'gone'}"
+        if runner["alive"]:
+            who = f"run by pid {runner['pid']}"
+        elif runner["detached"]:
+            who = "left up (netlab up)"  # its runner's exit is how `up` ends: no failure
+        else:
+            who = f"its runner (pid {runner['pid']}) DIED: `netlab down {lab['name']}`"
         print(f"lab {lab['name']}: {len(lab['robots'])} robots, {who}, workdir {lab['workdir']}")
         if not lab["medium"]:
             print("  medium namespace MISSING")
@@ -345,12 +497,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     from netlab import scenario
 
     if args.list:
+        print(f"{'scenario':18} {'robots':>6} {'beacon':>7} {'takes':>14} {'--quick':>14}  about")
         for name, path in scenario.bundled().items():
             try:
-                desc = scenario.load(path).description
+                sc = scenario.load(path)
             except scenario.ScenarioError as exc:
-                desc = f"(invalid: {exc})"
-            print(f"{name:18} {desc}")
+                print(f"{name:18} (invalid: {exc})")
+                continue
+            full, quick = _span(*sc.timeline()), _span(*sc.timeline(quick=True))
+            n = len(sc.names)
+            print(f"{name:18} {n:>6} {sc.beacon:>6g}s {full:>14} {quick:>14}  {sc.description}")
+        print("takes: the steps' own time, and at most (every check waiting out its deadline);")
+        print("starting daemons and taking the lab down add seconds")
         return 0
     if not args.scenario:
         raise NetlabError("run: give a scenario file or a bundled scenario's name (--list)")
@@ -374,6 +532,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0 if result.ok else EXIT_FAILED
 
 
+def _span(least: float, most: float) -> str:
+    def fmt(s: float) -> str:
+        return (
+            f"{s / 60:.0f} min" if s >= 600 else f"{s / 60:.1f} min" if s >= 120 else f"{s:.0f} s"
+        )
+
+    low, high = fmt(least), fmt(most)
+    return low if low == high else f"{low}-{high}"
+
+
 def cmd_capture(args: argparse.Namespace) -> int:
     from netlab.capture import Capture
 
@@ -390,8 +558,10 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 f"{', '.join(record.robots)}; or medium)"
             )
         ns, iface = robot.ns, naming.ROBOT_IFACE
+    if args.out == "-":
+        return _stream(Capture(ns, iface, Path("-"), bpf=args.filter), args.duration)
     out = Path(args.out)
-    cap = Capture(ns, iface, out, label=args.target)
+    cap = Capture(ns, iface, out, bpf=args.filter, label=args.target)
     cap.start()
     until = f"for {args.duration:g} s" if args.duration else "until Ctrl-C"
     print(f"capturing {iface} of {args.target} in lab {args.name} to {out} {until}", flush=True)
@@ -409,6 +579,28 @@ def cmd_capture(args: argparse.Namespace) -> int:
         f"{out}: {stats.captured if stats.captured is not None else '?'} frames captured"
         + (f", {stats.dropped} dropped by the kernel" if stats.dropped else "")
     )
+    return 0
+
+
+def _stream(cap: Any, duration: float | None) -> int:
+    """tcpdump writing the pcap to our standard output (a pipe into Wireshark) until Ctrl-C,
+    the reader's end, or `duration`; its messages go to standard error."""
+    sys.stdout.flush()
+    proc = subprocess.Popen(cap.argv(), stdin=subprocess.DEVNULL, start_new_session=True)
+    try:
+        proc.wait(timeout=duration)
+    except subprocess.TimeoutExpired:
+        pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)  # tcpdump ends the stream with whole records
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
     return 0
 
 
@@ -444,6 +636,9 @@ COMMANDS = {
     "down": cmd_down,
     "status": cmd_status,
     "exec": cmd_exec,
+    "partition": cmd_partition,
+    "merge": cmd_merge,
+    "shape": cmd_shape,
     "run": cmd_run,
     "capture": cmd_capture,
     "report": cmd_report,
@@ -461,6 +656,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("netlab: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of our output went away (`netlab ... | head`): not an error of ours.
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ derived from the lab's seed and ``i``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import socket
@@ -30,6 +31,7 @@ import subprocess
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from ipaddress import IPv4Interface
 from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
@@ -40,6 +42,7 @@ from netlab.doctor import capabilities
 from netlab.errors import (
     DaemonError,
     LabExistsError,
+    LabNotFoundError,
     LabStateError,
     NetlabError,
     UnknownRobotError,
@@ -145,6 +148,8 @@ class Lab:
         me = os.getpid()
         record = Manifest(self.name, self.seed, self.fleet, runner_pid=me)
         record.runner_start = cleanup.start_time(me) or 0
+        record.runtime, record.addressing = self.runtime, self.addressing
+        record.image = self.image if self.runtime == "docker" else ""
         manifest.claim(record)
         self._record = record
         self._state = "up"
@@ -203,13 +208,81 @@ class Lab:
         return result
 
     def detach(self) -> None:
-        """Leave the lab running for `netlab down` to remove later; close our handles."""
+        """Leave the lab running for `netlab down` to remove later; close our handles.
+
+        The medium's state is written into the manifest, so that another process can take
+        the lab over (`Lab.attach`) and change it: `netlab partition`, `merge`, `shape`.
+        """
         self._check_up()
+        assert self._record is not None
+        topology = self.topology.to_json()
+        if topology is not None:
+            shapes = {r: dataclasses.asdict(s) for r, s in self._shapes.items()}
+            self._record.medium = {**topology, "shapes": shapes}
+        self._record.detached = True
+        self._save()
         for client in self._clients.values():
             client.close()
         self._clients.clear()
         self.medium.close()
         self._state = "detached"
+
+    @classmethod
+    def attach(cls, name: str) -> Lab:
+        """Take over lab `name`, left running by `detach()` (`netlab up`): its medium can be
+        changed, commands run in its robots, its daemons asked; `detach()` again when done.
+        Hold `manifest.locked(name)` meanwhile when other processes may do the same."""
+        record = manifest.load(naming.check_lab_name(name))
+        if record is None:
+            raise LabNotFoundError(f"no lab {name} is up (`netlab status` lists labs)")
+        runner = cleanup.running(record.runner_pid) and (
+            cleanup.start_time(record.runner_pid) == record.runner_start
+        )
+        if not record.detached:
+            raise LabStateError(
+                f"lab {name} is run by pid {record.runner_pid}, which keeps its medium's state: "
+                "change it there"
+                if runner
+                else f"lab {name} was not left up by `netlab up` and its runner "
+                f"(pid {record.runner_pid}) is gone: `netlab down {name}` removes it"
+            )
+        if not record.medium:
+            raise LabStateError(f"lab {name}'s medium cannot be rebuilt (a custom range model)")
+        lab = cls(
+            name,
+            seed=record.seed,
+            fleet=record.fleet,
+            workdir=Path(record.workdir),
+            range_model=Topology.from_json(record.medium).model,
+            addressing=record.addressing,
+            runtime=record.runtime,
+            image=record.image or docker.DEFAULT_IMAGE,
+        )
+        lab._adopt(record)
+        return lab
+
+    def _adopt(self, record: Manifest) -> None:
+        self._record = record
+        self.workdir = Path(record.workdir)
+        self.topology = Topology.from_json(record.medium)
+        for name, r in record.robots.items():
+            robot = Robot(
+                name, r.index, r.ns, r.port, r.mac, IPv4Interface(r.address),
+                self.workdir / name, r.runtime,
+            )  # fmt: skip
+            self._robots[name] = robot
+            self._macs.add(robot.mac)
+        for name, params in record.medium.get("shapes", {}).items():
+            shape = LinkShape.of(**params)
+            self._shapes[name] = shape
+            loss = shaping.plan(shape, capabilities()).nft_loss
+            if loss:
+                self._nft_loss[name] = loss
+        self._other_labs_entries = sum(
+            hostlimits.mesh_entries(len(other.robots)) for other in manifest.others(self.name)
+        )
+        self.medium.open()
+        self._state = "up"
 
     def _check_up(self) -> None:
         if self._state != "up":

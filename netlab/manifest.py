@@ -12,10 +12,12 @@ every namespace) clears the manifests too.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -64,6 +66,15 @@ class Manifest:
     runner_pid: int = 0
     runner_start: int = 0
     created: float = field(default_factory=time.time)
+    runtime: str = "namespace"  # the lab's default robot kind
+    image: str = ""  # the robot image of docker robots
+    addressing: str = "manual"
+    #: Left running by its runner (`netlab up`): a missing runner is no failure, and other
+    #: processes may change its medium (`netlab partition`...), from `medium`.
+    detached: bool = False
+    #: The medium's state when detached: `Topology.to_json()` plus "shapes" (robot -> its
+    #: `LinkShape` parameters).
+    medium: dict[str, Any] = field(default_factory=dict)
     namespaces: list[str] = field(default_factory=list)
     robots: dict[str, RobotRecord] = field(default_factory=dict)
     processes: list[ProcRecord] = field(default_factory=list)
@@ -85,6 +96,11 @@ class Manifest:
                 runner_pid=int(data.get("runner_pid", 0)),
                 runner_start=int(data.get("runner_start", 0)),
                 created=float(data.get("created", 0.0)),
+                runtime=str(data.get("runtime", "namespace")),
+                image=str(data.get("image", "")),
+                addressing=str(data.get("addressing", "manual")),
+                detached=bool(data.get("detached", False)),
+                medium=dict(data.get("medium") or {}),
                 namespaces=[str(n) for n in data.get("namespaces", [])],
                 robots={str(k): RobotRecord(**v) for k, v in dict(data.get("robots", {})).items()},
                 processes=[ProcRecord(**p) for p in data.get("processes", [])],
@@ -154,11 +170,27 @@ def load(name: str) -> Manifest | None:
 
 
 def remove(name: str) -> bool:
+    with contextlib.suppress(FileNotFoundError):
+        (run_dir() / f".{name}.lock").unlink()
     try:
         path_of(name).unlink()
     except FileNotFoundError:
         return False
     return True
+
+
+@contextlib.contextmanager
+def locked(name: str) -> Iterator[None]:
+    """Hold lab `name`'s lock: one process at a time changes a detached lab."""
+    with kernel_errors(f"creating {run_dir()}"):
+        run_dir().mkdir(parents=True, exist_ok=True)
+    path = run_dir() / f".{name}.lock"
+    with kernel_errors(f"locking {path}"), open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def names() -> list[str]:

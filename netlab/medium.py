@@ -116,6 +116,12 @@ class Medium:
             self._bridge = ipr.link_lookup(ifname=BRIDGE)[0]
         self.load({}, {})
 
+    def open(self) -> None:
+        """Take over the medium of a lab that is up (made by another process)."""
+        self._ipr = kernel.open_ns(self.ns)
+        with kernel_errors(f"finding the bridge in {self.ns}"):
+            self._bridge = self._ipr.link_lookup(ifname=BRIDGE)[0]
+
     def attach(self, robot_ns: str, port: str, mac: str) -> None:
         """A veth from the bridge (`port`) to `eth0` with `mac` in `robot_ns`."""
         with kernel_errors(f"linking {robot_ns} to the medium"):

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from netlab.errors import UnknownRobotError
 
@@ -72,6 +72,29 @@ class LossyDisc:
         if distance <= self.clean or self.radius == self.clean:
             return 0.0
         return self.edge_loss * (distance - self.clean) / (self.radius - self.clean)
+
+
+def model_to_json(model: RangeModel) -> dict[str, Any] | None:
+    """The range model as JSON, or None for one netlab does not know (made in Python)."""
+    if isinstance(model, UnitDisc):
+        return {"kind": "unit-disc", "radius": model.radius}
+    if isinstance(model, LossyDisc):
+        return {
+            "kind": "lossy-disc",
+            "radius": model.radius,
+            "clean": model.clean,
+            "edge_loss": model.edge_loss,
+        }
+    return None
+
+
+def model_from_json(data: dict[str, Any]) -> RangeModel:
+    kind = data.get("kind")
+    if kind == "unit-disc":
+        return UnitDisc(float(data["radius"]))
+    if kind == "lossy-disc":
+        return LossyDisc(float(data["radius"]), float(data["clean"]), float(data["edge_loss"]))
+    raise ValueError(f"unknown range model {kind!r}")
 
 
 def combine(*losses: float) -> float:
@@ -146,6 +169,30 @@ class Topology:
                 self.pair_loss.pop(pair, None)
             else:
                 self.pair_loss[pair] = check_loss(loss)
+
+    def to_json(self) -> dict[str, Any] | None:
+        """Positions, partition and pair quality as JSON; None if the range model is not
+        one netlab can write down."""
+        model = model_to_json(self.model)
+        if model is None:
+            return None
+        return {
+            "model": model,
+            "positions": {r: list(p) for r, p in self.positions.items()},
+            "groups": None if self.groups is None else [sorted(g) for g in self.groups],
+            "pair_loss": [[a, b, loss] for (a, b), loss in sorted(self.pair_loss.items())],
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Topology:
+        topo = cls(model_from_json(data["model"]))
+        for robot, pos in data["positions"].items():
+            topo.add(robot, (pos[0], pos[1]))
+        if data.get("groups") is not None:
+            topo.partition(data["groups"])
+        for a, b, loss in data.get("pair_loss", []):
+            topo.set_pair_quality(a, b, loss, both=False)
+        return topo
 
     def group_of(self, robot: str) -> int:
         """Index of the robot's partition group (len(groups) for the unnamed rest)."""

@@ -99,10 +99,12 @@ from netlab.scenario.steps import (
     Wait,
     twin_mac,
 )
+from netlab.scenario.topology import LAYOUT_STEPS, add_robots, check_layout, lay_out
 
 __all__ = [
     "BUNDLED_DIR",
     "CONDITIONS",
+    "LAYOUT_STEPS",
     "PRODUCT_BEACON",
     "RUN_JSON",
     "STEPS",
@@ -144,10 +146,13 @@ __all__ = [
     "Unreachable",
     "Updates",
     "Wait",
+    "add_robots",
     "bundled",
+    "check_layout",
     "default_lab_name",
     "find",
     "from_dict",
+    "lay_out",
     "load",
     "loads",
     "missing_requirements",

@@ -30,7 +30,8 @@ from netlab.scenario.model import Scenario, reference, step_ref
 from netlab.scenario.results import CheckResult, RunResult
 from netlab.scenario.runfolder import new_run_dir, save_run, write_report
 from netlab.scenario.spec import Bad, Robots, Span, StepError, seconds
-from netlab.scenario.steps import Check, Start, twin_mac
+from netlab.scenario.steps import Check, Start
+from netlab.scenario.topology import add_robots
 from sdfr.errors import ApiError
 
 if TYPE_CHECKING:
@@ -203,19 +204,7 @@ class Run:
 
     def _add_robots(self) -> None:
         t = self.clock.monotonic()
-        positions = self.sc.initial_positions()
-        together = {r: group for group in self.sc.collisions() for r in group}
-        added: set[str] = set()
-        with self.lab.batch():
-            for name in self.sc.names:
-                # The first of a collision gets its own MAC; each other one a twin of it.
-                group = together.get(name, ())
-                first = next((r for r in group if r in added), None)
-                mac = None
-                if first is not None:
-                    mac = twin_mac(self.lab.robot(first).mac, group.index(name))
-                self.lab.add_robot(name, pos=positions[name], mac=mac)
-                added.add(name)
+        add_robots(self.lab, self.sc)
         self.record_truth()
         took = self.clock.monotonic() - t
         n = len(self.sc.names)

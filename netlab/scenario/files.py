@@ -37,9 +37,9 @@ from netlab.scenario.spec import (
 from netlab.scenario.steps import STEPS, Check, Step
 
 BUNDLED_DIR = Path(__file__).parent.parent / "scenarios"
-TOP_LEVEL = ("scenario", "groups", "positions", "sdfrd", "step")
+TOP_LEVEL = ("scenario", "groups", "positions", "kinds", "sdfrd", "step")
 #: Scenario fields written as tables of their own, not keys of [scenario].
-TABLES = ("groups", "positions", "sdfrd")
+TABLES = ("groups", "positions", "kinds", "sdfrd")
 
 #: How a field's value is read, by its declared type (``| None`` aside).
 BY_TYPE: dict[str, Conv] = {
@@ -193,7 +193,7 @@ def from_dict(
     if extra:
         raise ScenarioError(
             f"{source}: unknown table or key {', '.join(map(repr, extra))} (a scenario file has "
-            "[scenario], [groups], [positions], [sdfrd] and [[step]])"
+            "[scenario], [groups], [positions], [kinds], [sdfrd] and [[step]])"
         )
     f = _Fields(_table(data, "scenario", source), f"{source}: [scenario]")
     head = {"name": f.take("name", to_str, ... if name is None else name)}
@@ -206,6 +206,7 @@ def from_dict(
         steps=[_parse_step(t, f"{source}: step {i}") for i, t in enumerate(raw_steps, 1)],
         groups=_entries(_table(data, "groups", source), to_names, f"{source}: [groups]"),
         positions=_entries(_table(data, "positions", source), to_pair, f"{source}: [positions]"),
+        kinds=_entries(_table(data, "kinds", source), to_str, f"{source}: [kinds]"),
         sdfrd=_table(data, "sdfrd", source),
         source=source,
         **head,

@@ -23,11 +23,12 @@ from netlab.scenario.spec import (
     bounded,
     check_field,
     check_options,
+    seconds,
     to_int,
     to_names,
     toml,
 )
-from netlab.scenario.steps import Check, Collision, Start, Step
+from netlab.scenario.steps import Check, Collision, Mobility, Sleep, Start, Step
 
 CAPTURE_MODES = ("all", "robots", "medium", "none")
 LAYOUTS = ("line", "random")
@@ -81,7 +82,8 @@ class Scenario:
     `sample`: seconds between the observer's samples.  `addressing`: "manual" (the lab gives
     each robot a static address) or "auto" (sdfrd derives its own from the MAC, checks and
     defends it: ``sdfrd --addressing auto``; what makes a `Collision` collide).  `runtime`:
-    robots as "namespace"s or "docker" containers of the robot image (`netlab.robots`).
+    robots as "namespace"s or "docker" containers of the robot image (`netlab.robots`);
+    `kinds` gives some robots another (robot -> runtime: a lab may mix them).
     """
 
     name: str
@@ -102,6 +104,7 @@ class Scenario:
     sample: float = 0.25
     addressing: str = "manual"
     runtime: str = "namespace"
+    kinds: Mapping[str, str] = field(default_factory=dict)
     #: Where it was read from, for messages.
     source: str | None = field(default=None, compare=False)
 
@@ -162,6 +165,11 @@ class Scenario:
             raise Bad(f"addressing: one of {', '.join(ADDRESSING)}, got {self.addressing!r}")
         if self.runtime not in RUNTIMES:
             raise Bad(f"runtime: one of {', '.join(RUNTIMES)}, got {self.runtime!r}")
+        for robot, kind in self.kinds.items():
+            if robot not in self.names:
+                raise Bad(f"kinds: unknown robot {robot!r}")
+            if kind not in RUNTIMES:
+                raise Bad(f"kinds: {robot}: one of {', '.join(RUNTIMES)}, got {kind!r}")
         if self.capture not in CAPTURE_MODES:
             raise Bad(f"capture: one of {', '.join(CAPTURE_MODES)}, got {self.capture!r}")
         bounded(self.sample, "sample", 0.02, 60.0)
@@ -221,6 +229,25 @@ class Scenario:
             out = {n: (i * self.spacing, 0.0) for i, n in enumerate(names)}
         out.update({n: (float(p[0]), float(p[1])) for n, p in self.positions.items()})
         return out
+
+    def runtime_of(self, robot: str) -> str:
+        return self.kinds.get(robot, self.runtime)
+
+    def timeline(self, quick: bool = False) -> tuple[float, float]:
+        """Seconds the steps take at least (sleeps, mobility, checks that must hold for a
+        while) and at most (every check then waiting out its deadline); starting daemons and
+        the other actions add seconds to both."""
+        least = most = 0.0
+        for step in self.steps:
+            if isinstance(step, Sleep | Mobility):
+                span = step.quick if quick and step.quick is not None else step.duration
+                least += seconds(span, self.beacon)
+                most += seconds(span, self.beacon)
+            elif isinstance(step, Check):
+                held = seconds(step.during, self.beacon) if step.during is not None else 0.0
+                least += held
+                most += held + (seconds(step.within, self.beacon) if step.within else 0.0)
+        return least, most
 
     def sdfrd_options(self) -> set[str]:
         """Every sdfrd option a run of this scenario passes."""

@@ -203,3 +203,27 @@ def test_netlab_down_removes_a_container_lab_whose_runner_was_killed(
     assert nothing_left(lab_name) == [], f"killed after {after} s with {made}"
     again = netlab("down", lab_name)
     assert again.returncode == 0 and "nothing to remove" in again.stdout
+
+
+def test_a_topology_may_mix_kinds_and_be_partitioned_live(lab_name: str, tmp_path: Path) -> None:
+    topo = tmp_path / "mixed.toml"
+    topo.write_text(
+        '[scenario]\nrobots = ["base", "scout"]\nbeacon = 0.5\n[kinds]\nbase = "docker"\n'
+    )
+    up = netlab("up", lab_name, "-t", str(topo), "--start")
+    assert up.returncode == 0, up.stderr
+    assert "2 robots (some containers) up" in up.stdout
+    assert docker.labelled(lab_name) == [f"nl-{lab_name}-base", f"nl-{lab_name}-base.sdfrd"]
+
+    def base_lists(expected: list[str]) -> bool | str:
+        res = netlab("exec", lab_name, "base", "--", "sdfr", "--json", "neighbors", timeout=60)
+        if res.returncode != 0:
+            return res.stderr
+        seen = sorted(n["robot_id"] for n in json.loads(res.stdout)["neighbors"] if n["reachable"])
+        return seen == expected or f"base lists {seen}"
+
+    poll("the container lists the namespace robot", lambda: base_lists(["scout"]), 20, step=0.5)
+    assert netlab("partition", lab_name, "base", "scout").returncode == 0
+    poll("the partition reaches the container", lambda: base_lists([]), 20, step=0.5)
+    assert netlab("merge", lab_name).returncode == 0
+    poll("and the merge", lambda: base_lists(["scout"]), 20, step=0.5)

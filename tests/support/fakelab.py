@@ -58,7 +58,14 @@ class FakeLab:
         self.state = "down"
         self.running.clear()
 
-    def add_robot(self, name: str, *, pos: Pos = (0.0, 0.0), mac: str | None = None) -> None:
+    def add_robot(
+        self,
+        name: str,
+        *,
+        pos: Pos = (0.0, 0.0),
+        mac: str | None = None,
+        runtime: str | None = None,
+    ) -> None:
         self.robots[name] = FakeRobot(name, mac or f"02:00:00:00:00:{len(self.robots) + 1:02x}")
         self.topology.add(name, pos)
         self.services[name] = {}

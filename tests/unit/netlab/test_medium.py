@@ -439,3 +439,26 @@ def test_cli_rejects_bad_names_and_missing_robots(capsys: pytest.CaptureFixture[
     for argv in (["--", "ip", "-br", "a"], ["ip", "-br", "a"]):
         args = cli.build_parser().parse_args(["exec", "lab", "r1", *argv])
         assert args.cmd[-3:] == ["ip", "-br", "a"]
+
+
+def test_a_topology_written_down_comes_back_with_the_same_links() -> None:
+    topo = Topology(LossyDisc(30.0, clean=10.0, edge_loss=40.0))
+    for name, pos in {
+        "a": (0.0, 0.0),
+        "b": (20.0, 0.0),
+        "c": (5.0, 5.0),
+        "d": (100.0, 0.0),
+    }.items():
+        topo.add(name, pos)
+    topo.partition([["a", "b"]])
+    topo.set_pair_quality("a", "b", 12.5, both=False)
+    data = json.loads(json.dumps(topo.to_json()))
+    again = Topology.from_json(data)
+    assert again.links() == topo.links() and again.positions == topo.positions
+    assert again.model == topo.model
+
+    class Custom:
+        def loss(self, distance: float) -> float | None:
+            return 0.0
+
+    assert Topology(Custom()).to_json() is None  # a model netlab cannot write down

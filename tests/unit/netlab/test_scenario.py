@@ -23,6 +23,7 @@ from netlab.observe import (
     history_problems,
     unreachable_problems,
 )
+from netlab.ranges import UnitDisc
 from netlab.scenario import (
     Agreement,
     Backend,
@@ -52,6 +53,7 @@ from netlab.scenario import (
     Unreachable,
     Updates,
     Wait,
+    add_robots,
     bundled,
     find,
     load,
@@ -695,6 +697,50 @@ def test_cli_lists_the_bundled_scenarios(capsys: pytest.CaptureFixture[str]) -> 
     out = capsys.readouterr().out
     for name in bundled():
         assert name in out
+    # How long each takes, in full and with --quick: static-6 holds its check for 5 minutes.
+    line = next(line for line in out.splitlines() if line.startswith("static-6 "))
+    assert "5.0 min" in line and "15 s-18 s" in line
+
+
+def test_a_scenario_knows_how_long_its_steps_take() -> None:
+    sc = loads(
+        "[scenario]\nbeacon = 2.0\n[[step]]\nsleep = 10\nquick = 1\n"
+        '[[step]]\ncheck = "lists"\nwithin = "3 beacons"\nduring = 4\n'
+        '[[step]]\nmobility = "all"\nduration = "1 min"\nquick = 5\n',
+        "t.toml",
+        name="t",
+    )
+    assert sc.timeline() == (74.0, 80.0)
+    assert sc.timeline(quick=True) == (10.0, 16.0)
+
+
+def test_kinds_give_robots_another_runtime_and_are_checked() -> None:
+    sc = loads(
+        '[scenario]\nrobots = 3\nruntime = "docker"\n[kinds]\nr2 = "namespace"\n', "k", name="k"
+    )
+    assert [sc.runtime_of(r) for r in sc.names] == ["docker", "namespace", "docker"]
+    with pytest.raises(ScenarioError, match="kinds: unknown robot 'r9'"):
+        loads('[scenario]\nrobots = 3\n[kinds]\nr9 = "docker"\n', "k", name="k")
+    with pytest.raises(ScenarioError, match="kinds: r1: one of namespace, docker, got 'vm'"):
+        loads('[scenario]\nrobots = 3\n[kinds]\nr1 = "vm"\n', "k", name="k")
+
+
+def test_a_topology_file_lays_out_the_medium_only() -> None:
+    from netlab.scenario import check_layout, lay_out
+
+    sc = loads(
+        "[scenario]\nrobots = 3\nradius = 10\n[positions]\nr3 = [30, 0]\n"
+        '[[step]]\nquality = ["r1", "r2"]\nloss = 20\n[[step]]\npartition = [["r1"]]\n',
+        "topo.toml",
+        name="topo",
+    )
+    lab = FakeLab(LabSpec("t", 0, 1, UnitDisc(10.0)))
+    add_robots(lab, sc)
+    assert lay_out(lab, sc) == ["quality: 20 % loss on 1 pair", "partition r1"]
+    assert lab.links() == {}  # r1 cut off, r3 out of range: r2 alone
+    timeline = loads("[scenario]\nrobots = 2\n[[step]]\nstart = 'all'\n", "run.toml", name="run")
+    with pytest.raises(ScenarioError, match=r"step 1 \(start\): a topology's steps lay out"):
+        check_layout(timeline)
 
 
 def test_cli_refuses_a_bad_scenario_file_with_status_2(

@@ -1,0 +1,74 @@
+"""A lab laid out as a scenario file describes it: its robots (names, kinds, positions, twin
+MACs for collisions), and for ``netlab up -t FILE`` the medium steps of the file, applied at
+once in order (partition, merge, move, quality, shape: a topology file is a scenario file
+whose steps only lay out the medium)."""
+
+from __future__ import annotations
+
+from netlab.scenario.backend import LabLike
+from netlab.scenario.model import Scenario, step_ref
+from netlab.scenario.spec import ScenarioError, pairs_of, select_groups
+from netlab.scenario.steps import Merge, Move, Partition, Quality, Shape, twin_mac
+
+#: The steps a topology file may have.
+LAYOUT_STEPS = (Partition, Merge, Move, Quality, Shape)
+
+
+def add_robots(lab: LabLike, sc: Scenario) -> None:
+    """The scenario's robots, where it puts them, of the kinds it says; the first robot of a
+    collision gets its own MAC, each other one a twin of it.  The medium is loaded once."""
+    positions = sc.initial_positions()
+    together = {r: group for group in sc.collisions() for r in group}
+    added: set[str] = set()
+    with lab.batch():
+        for name in sc.names:
+            group = together.get(name, ())
+            first = next((r for r in group if r in added), None)
+            mac = twin_mac(lab.robot(first).mac, group.index(name)) if first is not None else None
+            lab.add_robot(name, pos=positions[name], mac=mac, runtime=sc.runtime_of(name))
+            added.add(name)
+
+
+def check_layout(sc: Scenario) -> None:
+    """ScenarioError unless every step of `sc` lays out the medium."""
+    for i, step in enumerate(sc.steps, 1):
+        if not isinstance(step, LAYOUT_STEPS):
+            kinds = ", ".join(cls.kind for cls in LAYOUT_STEPS)
+            raise ScenarioError(
+                f"{sc.source or sc.name}: {step_ref(i, step)}: a topology's steps lay out the "
+                f"medium ({kinds}); use `netlab run` for a timeline"
+            )
+
+
+def lay_out(lab: LabLike, sc: Scenario) -> list[str]:
+    """Apply the scenario's steps (all of LAYOUT_STEPS, see `check_layout`) to the lab's
+    medium in order, as one change; what each did."""
+    check_layout(sc)
+    ctx = sc._ctx()
+    done: list[str] = []
+    with lab.batch():
+        for step in sc.steps:
+            if isinstance(step, Partition):
+                groups = select_groups(ctx, step.groups)
+                lab.partition(groups)
+                done.append("partition " + " | ".join(",".join(g) for g in groups))
+            elif isinstance(step, Merge):
+                lab.merge()
+                done.append("merge")
+            elif isinstance(step, Move):
+                lab.move(step.robot, (float(step.to[0]), float(step.to[1])))
+                done.append(f"move {step.robot} to ({step.to[0]:g}, {step.to[1]:g})")
+            elif isinstance(step, Quality):
+                names = ctx.robots(step.robots)
+                peers = ctx.robots(step.peers) if step.peers is not None else names
+                pairs = pairs_of(names, peers, both=step.both)
+                for a, b in pairs:
+                    lab.set_pair_quality(a, b, loss=step.loss, both=step.both)
+                loss = "the range model" if step.loss is None else f"{step.loss:g} % loss"
+                done.append(f"quality: {loss} on {len(pairs)} pair{'s' * (len(pairs) != 1)}")
+            elif isinstance(step, Shape):
+                for name in ctx.robots(step.robots):
+                    lab.shape(name, **dict(step.params))
+                params = ", ".join(f"{k} {v}" for k, v in step.params.items()) or "no shaping"
+                done.append(f"shape {','.join(ctx.robots(step.robots))}: {params}")
+    return done
