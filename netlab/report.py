@@ -49,6 +49,7 @@ AGREEMENT_TARGET = 0.95
 _MAX_BINS = 60
 _STEPS = (0.5, 1.0, 2.0, 5.0, 10.0, 15.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 _DPI = 110
+_TIME_AXIS = "time since start of run (s); dotted: events, ▲: check deadlines"
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,18 +164,21 @@ def write_report(
         report["agreement"] = _agreement_summary(agree)
 
     plots: dict[str, str] = report["plots"]
+    timeline = Timeline.of(meta, start, end, run_dir.name)
     plots["bytes_per_robot"] = _save(
-        _plot_bytes(report["traffic"], duration), run_dir / "bytes_per_robot.png"
+        _plot_bytes(report["traffic"], duration), run_dir / "bytes_per_robot.png", timeline
     )
     plots["datagrams_per_type"] = _save(
-        _plot_types(recs, start, end), run_dir / "datagrams_per_type.png"
+        _plot_types(recs, start, end, timeline), run_dir / "datagrams_per_type.png", timeline
     )
     if conn:
         plots["connectivity"] = _save(
-            _plot_connectivity(conn, start, end), run_dir / "connectivity.png"
+            _plot_connectivity(conn, start, end, timeline), run_dir / "connectivity.png", timeline
         )
     if agree:
-        plots["agreement"] = _save(_plot_agreement(agree, start), run_dir / "agreement.png")
+        plots["agreement"] = _save(
+            _plot_agreement(agree, start, timeline), run_dir / "agreement.png", timeline
+        )
 
     text = json.dumps(report, indent=2, sort_keys=False, default=_json_default) + "\n"
     tmp = run_dir / (REPORT_JSON + ".tmp")
@@ -273,13 +277,89 @@ def _json_default(obj: object) -> Any:
 # Plots
 
 
+#: Steps marked on every time axis, and how.
+_MARKED = {
+    "partition": ("partition", "#d62728"),
+    "merge": ("merge", "#2ca02c"),
+    "kill": ("kill -9", "#000000"),
+    "stop": ("stop", "#7f7f7f"),
+    "restart": ("restart", "#9467bd"),
+    "collision": ("collision", "#ff7f0e"),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Timeline:
+    """What every time plot of a run shares: its axis (0 to `duration` seconds), its marked
+    events (partitions, merges, kills...) and check deadlines, and the title naming the
+    scenario and the run."""
+
+    duration: float
+    title: str
+    events: tuple[tuple[float, str, str], ...] = ()  # (seconds, label, colour)
+    deadlines: tuple[tuple[float, str], ...] = ()  # (seconds, check)
+    lag: float | None = None  # the agreement plot's lag, when the run had one
+    target: float | None = None  # the agreement check's threshold, when the run had one
+
+    @classmethod
+    def of(cls, meta: Mapping[str, Any], start: float, end: float, run: str) -> Timeline:
+        scenario = meta.get("scenario")
+        title = f"{scenario} · run {run}" if scenario else f"run {run}"
+        steps = [s for s in meta.get("steps", []) if isinstance(s, Mapping)]
+        events = []
+        for s in steps:
+            mark = _MARKED.get(str(s.get("kind")))
+            if mark is not None and s.get("start") is not None:
+                events.append((float(s["start"]) - start, s.get("label") or mark[0], mark[1]))
+        # A check's deadline counts from the end of the last action step before it.
+        deadlines = []
+        checks = {c.get("step"): c for c in meta.get("checks", []) if isinstance(c, Mapping)}
+        clock = None
+        for s in steps:
+            if s.get("kind") not in ("check", "wait"):
+                clock = s.get("end")
+                continue
+            check = checks.get(s.get("step"))
+            if check is not None and check.get("deadline_s") is not None and clock is not None:
+                when = float(clock) + float(check["deadline_s"]) - start
+                deadlines.append((when, str(check.get("description") or s.get("label") or "")))
+        lag, target = meta.get("agreement_lag_s"), meta.get("agreement_target")
+        return cls(
+            end - start,
+            title,
+            tuple(events),
+            tuple(deadlines),
+            float(lag) if lag is not None else None,
+            float(target) if target is not None else None,
+        )
+
+    def axis(self, ax: Axes, *, labels: bool = True) -> None:
+        """The run's time axis on `ax`, with its events (named at the top when `labels`) and
+        its checks' deadlines (short ticks at the bottom)."""
+        ax.set_xlim(0, max(self.duration, 1e-9))
+        for t, label, colour in self.events:
+            ax.axvline(t, color=colour, linestyle=":", linewidth=1.2, alpha=0.9)
+            if labels:
+                ax.annotate(
+                    label, (t, 1.0), xycoords=("data", "axes fraction"), xytext=(2, -2),
+                    textcoords="offset points", rotation=90, va="top", ha="left", fontsize=7,
+                    color=colour,
+                )  # fmt: skip
+        for t, _check in self.deadlines:
+            ax.plot(
+                [t], [0.0], marker="^", markersize=6, color="#d62728", clip_on=False,
+                transform=ax.get_xaxis_transform(), linestyle="none",
+            )  # fmt: skip
+
+
 def _figure(width: float = 8.0, height: float = 4.5) -> Figure:
     from matplotlib.figure import Figure
 
     return Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
 
 
-def _save(fig: Figure, path: Path) -> str:
+def _save(fig: Figure, path: Path, timeline: Timeline) -> str:
+    fig.suptitle(timeline.title, fontsize=9, color="#444444")
     fig.savefig(path, format="png")
     return path.name
 
@@ -338,7 +418,7 @@ def _step_for(duration: float) -> float:
     return _STEPS[-1]
 
 
-def _plot_types(recs: Sequence[Record], start: float, end: float) -> Figure:
+def _plot_types(recs: Sequence[Record], start: float, end: float, timeline: Timeline) -> Figure:
     step = _step_for(end - start)
     series = analysis.per_second(recs, by="type", step=step, start=start, end=end)
     fig = _figure(8.0, 4.5)
@@ -369,10 +449,10 @@ def _plot_types(recs: Sequence[Record], start: float, end: float) -> Figure:
             label=f"{key} ({total})",
         )
         bottom = [b + r for b, r in zip(bottom, rates, strict=True)]
-    ax.set_xlabel("time since start of run (s)")
+    ax.set_xlabel(_TIME_AXIS)
     unit = "per second" if step == 1.0 else f"per second (mean over {step:g} s bins)"
     ax.set_ylabel(f"datagrams {unit}")
-    ax.set_xlim(0, max(lefts[-1] + widths[-1], 1e-9))
+    timeline.axis(ax)
     ax.set_ylim(0, max(bottom) * 1.15 or 1.0)
     ax.grid(axis="y", alpha=0.3)
     ax.set_axisbelow(True)
@@ -400,7 +480,9 @@ def _type_colors() -> dict[str, str]:
     }
 
 
-def _plot_connectivity(conn: Sequence[ConnectivitySample], start: float, end: float) -> Figure:
+def _plot_connectivity(
+    conn: Sequence[ConnectivitySample], start: float, end: float, timeline: Timeline
+) -> Figure:
     from matplotlib.ticker import MaxNLocator
 
     fig = _figure(8.0, 6.0)
@@ -414,7 +496,7 @@ def _plot_connectivity(conn: Sequence[ConnectivitySample], start: float, end: fl
     if any(s.reachable_pairs is not None for s in conn):
         pairs = [math.nan if s.reachable_pairs is None else s.reachable_pairs for s in conn]
         top.stairs(pairs, edges, baseline=None, linestyle="--", label="pairs listing each other")
-    top.set_xlim(edges[0], edges[-1])
+    timeline.axis(top)
     top.set_ylabel("robot pairs")
     top.set_ylim(bottom=0, top=max(1, max(s.linked_pairs for s in conn)) * 1.15)
     top.yaxis.set_major_locator(MaxNLocator(integer=True))
@@ -447,18 +529,23 @@ def _plot_connectivity(conn: Sequence[ConnectivitySample], start: float, end: fl
             bottom.tick_params(axis="y", labelsize=6)
     else:
         _empty(bottom, "no per-robot samples")
-    bottom.set_xlabel("time since start of run (s)")
+    timeline.axis(bottom, labels=False)
+    bottom.set_xlabel(_TIME_AXIS)
     bottom.set_ylabel("robot")
     return fig
 
 
-def _plot_agreement(agree: Sequence[AgreementSample], start: float) -> Figure:
+def _plot_agreement(agree: Sequence[AgreementSample], start: float, timeline: Timeline) -> Figure:
     fig = _figure(8.0, 4.5)
     ax = fig.add_subplot()
     ts = [s.time - start for s in agree]
     values = [100.0 * s.agreement for s in agree]
     mean = _mean(values)
-    ax.set_title(f"Neighbour tables vs. true connectivity (mean agreement {mean:.1f} %)")
+    lag = f", lists allowed {timeline.lag:g} s to follow" if timeline.lag is not None else ""
+    ax.set_title(
+        f"Neighbour lists vs. the medium's links (mean agreement {mean:.1f} %{lag})",
+        fontsize=10,
+    )
     robots = analysis.natural_order(sorted({r for s in agree for r in s.per_robot}))
     if 0 < len(robots) <= 10:
         for robot in robots:
@@ -469,16 +556,18 @@ def _plot_agreement(agree: Sequence[AgreementSample], start: float) -> Figure:
     ax.plot(
         ts, values, color="black", linewidth=2.0, marker="." if len(ts) < 60 else "", label="fleet"
     )
-    ax.axhline(
-        100 * AGREEMENT_TARGET,
-        color="#d62728",
-        linestyle="--",
-        linewidth=1.0,
-        label=f"{100 * AGREEMENT_TARGET:.0f} % target",
-    )
-    ax.set_xlabel("time since start of run (s)")
+    if timeline.target is not None:  # only a run with an agreement check has a target
+        ax.axhline(
+            100 * timeline.target,
+            color="#d62728",
+            linestyle="--",
+            linewidth=1.0,
+            label=f"{100 * timeline.target:.0f} % (the run's check)",
+        )
+    timeline.axis(ax)
+    ax.set_xlabel(_TIME_AXIS)
     ax.set_ylabel("pairs in agreement (%)")
-    low = min([*values, 100 * AGREEMENT_TARGET])
+    low = min([*values, 100 * (timeline.target or 1.0)])
     ax.set_ylim(max(0.0, math.floor(low / 10) * 10 - 5), 101)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right", ncols=min(4, len(robots) + 2))

@@ -412,11 +412,15 @@ class Run:
         kept = "pcaps, " if self.captured else ""
         self._say(f"run folder: {self.run_dir} ({files}; {kept}run.json, logs/)")
 
-    def _report_lag(self) -> float:
+    def _agreement_check(self) -> Agreement | None:
         for step in self.sc.steps:
             if isinstance(step, Check) and isinstance(step.condition, Agreement):
-                return self.seconds(step.condition.lag)
-        return self.sc.beacon
+                return step.condition
+        return None
+
+    def _report_lag(self) -> float:
+        check = self._agreement_check()
+        return self.seconds(check.lag) if check is not None else self.sc.beacon
 
     def _meta(self, result: RunResult, lag: float) -> dict[str, object]:
         steps = []
@@ -444,6 +448,7 @@ class Run:
             "start": self.wall[0],
             "end": self.wall[1],
             "agreement_lag_s": lag,
+            "agreement_target": check.at_least if (check := self._agreement_check()) else None,
             "checks": [c.to_json() for c in self.checks],
             "steps": steps,
         }

@@ -573,3 +573,33 @@ def test_ping_delivery_pairs_pings_with_their_replies() -> None:
     assert ping_delivery(recs)[("r1", "r2")].rate == pytest.approx(2 / 3)
     assert ping_delivery(recs, since=T0 + 1) == {("r1", "r2"): PingTally(2, 1)}
     assert PingTally(0, 0).rate is None
+
+
+def test_every_time_plot_of_a_run_shares_its_axis_events_deadlines_and_title() -> None:
+    from netlab.report import Timeline
+
+    t0 = 1000.0
+    meta = {
+        "scenario": "split",
+        "agreement_lag_s": 1.0,
+        "agreement_target": 0.9,
+        "steps": [
+            {"step": 1, "kind": "start", "label": None, "start": t0 + 1, "end": t0 + 3},
+            {"step": 2, "kind": "partition", "label": "split", "start": t0 + 4, "end": t0 + 4.5},
+            {"step": 3, "kind": "check", "label": None, "start": t0 + 4.5, "end": t0 + 6},
+            {"step": 4, "kind": "kill", "label": None, "start": t0 + 7, "end": t0 + 7.2},
+            {"step": 5, "kind": "wait", "label": None, "start": t0 + 7.2, "end": t0 + 8},
+        ],
+        "checks": [
+            {"step": 3, "description": "each side lists its side", "deadline_s": 3.5},
+            {"step": 5, "description": "gone", "deadline_s": None},
+        ],
+    }
+    tl = Timeline.of(meta, t0, t0 + 20, "split-20261124-1")
+    assert tl.title == "split · run split-20261124-1" and tl.duration == 20.0
+    assert [(t, label) for t, label, _ in tl.events] == [(4.0, "split"), (7.0, "kill -9")]
+    # A deadline counts from the end of the last action before the check.
+    assert tl.deadlines == ((8.0, "each side lists its side"),)
+    assert (tl.lag, tl.target) == (1.0, 0.9)
+    bare = Timeline.of({}, t0, t0 + 5, "pcaps")
+    assert bare.title == "run pcaps" and bare.target is None and bare.events == ()
