@@ -337,19 +337,24 @@ class Timeline:
         """The run's time axis on `ax`, with its events (named at the top when `labels`) and
         its checks' deadlines (short ticks at the bottom)."""
         ax.set_xlim(0, max(self.duration, 1e-9))
-        for t, label, colour in self.events:
+        # Marks past the run's end (a deadline the run did not wait for) are left out; none
+        # takes part in the layout, so a mark never squeezes the plot.
+        inside = [e for e in self.events if 0 <= e[0] <= self.duration]
+        for t, label, colour in inside:
             ax.axvline(t, color=colour, linestyle=":", linewidth=1.2, alpha=0.9)
             if labels:
                 ax.annotate(
                     label, (t, 1.0), xycoords=("data", "axes fraction"), xytext=(2, -2),
                     textcoords="offset points", rotation=90, va="top", ha="left", fontsize=7,
-                    color=colour,
-                )  # fmt: skip
+                    color=colour, annotation_clip=True,
+                ).set_in_layout(False)  # fmt: skip
         for t, _check in self.deadlines:
-            ax.plot(
-                [t], [0.0], marker="^", markersize=6, color="#d62728", clip_on=False,
-                transform=ax.get_xaxis_transform(), linestyle="none",
-            )  # fmt: skip
+            if 0 <= t <= self.duration:
+                (tick,) = ax.plot(
+                    [t], [0.0], marker="^", markersize=6, color="#d62728", clip_on=False,
+                    transform=ax.get_xaxis_transform(), linestyle="none",
+                )  # fmt: skip
+                tick.set_in_layout(False)
 
 
 def _figure(width: float = 8.0, height: float = 4.5) -> Figure:
