@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from collections.abc import Sequence
 from typing import Any
 
 from sdfr.errors import ConfigError
 from sdfr.ros import messages as conv
-from sdfr.ros.core import Bridge, BridgeError, Change, Diagnosis, Snapshot
+from sdfr.ros.adapter import NodeAdapter
+from sdfr.ros.core import Bridge
 from sdfr.ros.params import NodeParams
 from sdfr.ros.spawn import SpawnError
 
@@ -57,11 +57,14 @@ def interfaces() -> conv.Interfaces:
     )
 
 
-class Ros1Node:
+class Ros1Node(NodeAdapter):
     """The node's publishers, subscribers and services around a bridge."""
+
+    private = "~"
 
     def __init__(self, params: NodeParams) -> None:
         self.m = interfaces()
+        self.info, self.error = rospy.loginfo, rospy.logerr
         self.neighbors_pub = rospy.Publisher(
             "~neighbors", sdfr_msg.NeighborList, queue_size=1, latch=True
         )
@@ -71,71 +74,17 @@ class Ros1Node:
 
     def open(self) -> None:
         self.bridge.start()
-        rospy.Subscriber("~publish", sdfr_msg.Service, self._on_publish, queue_size=100)
-        rospy.Subscriber("~unpublish", sdfr_msg.Service, self._on_unpublish, queue_size=100)
+        rospy.Subscriber("~publish", sdfr_msg.Service, self.on_publish, queue_size=100)
+        rospy.Subscriber("~unpublish", sdfr_msg.Service, self.on_unpublish, queue_size=100)
         rospy.Service("~search", sdfr_srv.Search, self._on_search)
         rospy.Service("~list", sdfr_srv.List, self._on_list)
-        spawned = self.bridge.spawned
-        rospy.loginfo(
-            f"bridging sdfrd at {self.bridge.params.api} (robot {self.bridge.robot_id or '?'})"
-            + (f"; started it: {' '.join(spawned.argv)}" if spawned else "")
-        )
-
-    def close(self) -> None:
-        self.bridge.close()
-
-    # -- Sink ----------------------------------------------------------------------------------
-
-    def neighbors(self, snapshot: Snapshot, robot_id: str) -> None:
-        self.neighbors_pub.publish(conv.neighbor_list_msg(self.m, snapshot, robot_id))
-
-    def changes(self, changes: Sequence[Change]) -> None:
-        for change in changes:
-            self.changes_pub.publish(conv.change_msg(self.m, change))
-
-    def diagnostics(self, diagnosis: Diagnosis) -> None:
-        self.diag_pub.publish(conv.diagnostic_msg(self.m, diagnosis, time.time()))
-
-    # -- requests ------------------------------------------------------------------------------
-
-    def _on_publish(self, msg: Any) -> None:
-        try:
-            sid = self.bridge.publish(conv.request_from_msg(msg))
-        except BridgeError as exc:
-            rospy.logerr(f"~publish: {exc}")
-        else:
-            rospy.loginfo(f"published {msg.name!r} as {sid}")
-
-    def _on_unpublish(self, msg: Any) -> None:
-        try:
-            sid = self.bridge.unpublish(conv.request_from_msg(msg))
-        except BridgeError as exc:
-            rospy.logerr(f"~unpublish: {exc}")
-        else:
-            rospy.loginfo(f"unpublished {sid}")
+        self.announce()
 
     def _on_search(self, request: Any) -> Any:
-        response = sdfr_srv.SearchResponse()
-        try:
-            attrs = conv.attributes_from_msgs(request.attributes)
-            response.robots = conv.robot_msgs(self.m, self.bridge.search(request.type, attrs))
-            response.success = True
-        except BridgeError as exc:
-            response.success, response.message = False, str(exc)
-        return response
+        return self.search(request, sdfr_srv.SearchResponse())
 
     def _on_list(self, request: Any) -> Any:
-        response = sdfr_srv.ListResponse()
-        try:
-            listing = self.bridge.listing(bool(request.include_unreachable))
-        except BridgeError as exc:
-            response.success, response.message = False, str(exc)
-            return response
-        response.success = True
-        response.robot_id = listing.robot_id
-        response.services = [conv.service_msg(self.m, s) for s in listing.services]
-        response.robots = conv.robot_msgs(self.m, listing.robots)
-        return response
+        return self.list(request, sdfr_srv.ListResponse())
 
 
 def read_params() -> NodeParams:

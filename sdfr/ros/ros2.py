@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from collections.abc import Sequence
 from typing import Any
 
 from sdfr.errors import ConfigError
 from sdfr.ros import messages as conv
-from sdfr.ros.core import Bridge, BridgeError, Change, Diagnosis, Snapshot
+from sdfr.ros.adapter import NodeAdapter
+from sdfr.ros.core import Bridge
 from sdfr.ros.params import DESCRIPTIONS, NodeParams
 from sdfr.ros.spawn import SpawnError
 
@@ -66,12 +66,13 @@ def interfaces() -> conv.Interfaces:
     )
 
 
-class Ros2Node:
+class Ros2Node(NodeAdapter):
     """The node's publishers, subscriptions and services around a bridge."""
 
     def __init__(self, node: Any, params: NodeParams) -> None:
         self.node = node
-        self.log = node.get_logger()
+        log = node.get_logger()
+        self.info, self.error = log.info, log.error
         self.m = interfaces()
         latched = QoSProfile(
             depth=1,
@@ -89,69 +90,11 @@ class Ros2Node:
         self.bridge.start()
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         node = self.node
-        node.create_subscription(sdfr_msg.Service, "~/publish", self._on_publish, reliable)
-        node.create_subscription(sdfr_msg.Service, "~/unpublish", self._on_unpublish, reliable)
-        node.create_service(sdfr_srv.Search, "~/search", self._on_search)
-        node.create_service(sdfr_srv.List, "~/list", self._on_list)
-        spawned = self.bridge.spawned
-        self.log.info(
-            f"bridging sdfrd at {self.bridge.params.api} (robot {self.bridge.robot_id or '?'})"
-            + (f"; started it: {' '.join(spawned.argv)}" if spawned else "")
-        )
-
-    def close(self) -> None:
-        self.bridge.close()
-
-    # -- Sink ----------------------------------------------------------------------------------
-
-    def neighbors(self, snapshot: Snapshot, robot_id: str) -> None:
-        self.neighbors_pub.publish(conv.neighbor_list_msg(self.m, snapshot, robot_id))
-
-    def changes(self, changes: Sequence[Change]) -> None:
-        for change in changes:
-            self.changes_pub.publish(conv.change_msg(self.m, change))
-
-    def diagnostics(self, diagnosis: Diagnosis) -> None:
-        self.diag_pub.publish(conv.diagnostic_msg(self.m, diagnosis, time.time()))
-
-    # -- requests ------------------------------------------------------------------------------
-
-    def _on_publish(self, msg: Any) -> None:
-        try:
-            sid = self.bridge.publish(conv.request_from_msg(msg))
-        except BridgeError as exc:
-            self.log.error(f"~/publish: {exc}")
-        else:
-            self.log.info(f"published {msg.name!r} as {sid}")
-
-    def _on_unpublish(self, msg: Any) -> None:
-        try:
-            sid = self.bridge.unpublish(conv.request_from_msg(msg))
-        except BridgeError as exc:
-            self.log.error(f"~/unpublish: {exc}")
-        else:
-            self.log.info(f"unpublished {sid}")
-
-    def _on_search(self, request: Any, response: Any) -> Any:
-        try:
-            attrs = conv.attributes_from_msgs(request.attributes)
-            response.robots = conv.robot_msgs(self.m, self.bridge.search(request.type, attrs))
-            response.success = True
-        except BridgeError as exc:
-            response.success, response.message = False, str(exc)
-        return response
-
-    def _on_list(self, request: Any, response: Any) -> Any:
-        try:
-            listing = self.bridge.listing(bool(request.include_unreachable))
-        except BridgeError as exc:
-            response.success, response.message = False, str(exc)
-            return response
-        response.success = True
-        response.robot_id = listing.robot_id
-        response.services = [conv.service_msg(self.m, s) for s in listing.services]
-        response.robots = conv.robot_msgs(self.m, listing.robots)
-        return response
+        node.create_subscription(sdfr_msg.Service, "~/publish", self.on_publish, reliable)
+        node.create_subscription(sdfr_msg.Service, "~/unpublish", self.on_unpublish, reliable)
+        node.create_service(sdfr_srv.Search, "~/search", self.search)
+        node.create_service(sdfr_srv.List, "~/list", self.list)
+        self.announce()
 
 
 def read_params(node: Any) -> NodeParams:
