@@ -9,7 +9,7 @@ import os
 import stat
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -339,7 +339,7 @@ def _show_self(answer: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n\n" + _show_services(answer)
 
 
-def _show_health(answer: dict[str, Any]) -> str:
+def _show_health(answer: Mapping[str, Any]) -> str:
     age = answer.get("discovery_heartbeat_age")
     beat = f", last heartbeat {age:.1f}s ago" if isinstance(age, int | float) else ""
     auth = f", fleet key: {answer['auth']}" if answer.get("auth") else ""
@@ -534,7 +534,8 @@ def _keys(args: argparse.Namespace) -> int:
                     if exc.status != 0 or not exc.message.startswith("cannot reach"):
                         raise
                     hint = _NEED_ACCESS if "Permission denied" in exc.message else _CHECK_SOCKET
-                    raise ApiError(0, f"{exc.message}; {hint}") from None
+                    what = exc.message.partition(";")[0]  # (the client's hint is for the API)
+                    raise ApiError(0, f"{what}; {hint}") from None
     except (ConfigError, ApiError) as exc:
         print(f"sdfr: {exc}", file=sys.stderr)
         return 1

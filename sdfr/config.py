@@ -6,12 +6,12 @@ import argparse
 import ipaddress
 import os
 import re
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 from sdfr import wire
+from sdfr._compat import tomllib
 from sdfr.errors import ConfigError
 from sdfr.model import ROBOT_ID_RE
 from sdfr.protocol import (
@@ -66,6 +66,7 @@ class Config:
     ssdp_interop: str = "auto"
     api_allowed_hosts: tuple[str, ...] = ()
     api_allowed_origins: tuple[str, ...] = ()
+    indicator_thresholds: tuple[float, ...] = (0.5, 0.8)
 
     @property
     def ssdp_interop_wanted(self) -> bool | None:
@@ -138,6 +139,12 @@ class Config:
             )
         if self.ssdp_interop not in ("auto", "on", "off"):
             raise ConfigError(f"ssdp_interop: must be auto, on or off, got {self.ssdp_interop!r}")
+        for threshold in self.indicator_thresholds:
+            if not 0 < threshold <= 1:
+                raise ConfigError(
+                    f"indicator_thresholds: each must be above 0 and at most 1 (a share of "
+                    f"pings answered), got {threshold}"
+                )
         for host in self.api_allowed_hosts:
             if not re.fullmatch(r"[A-Za-z0-9.:\[\]_-]{1,253}", host):
                 raise ConfigError(f"api_allowed_hosts: {host!r} is not a host name or address")
@@ -281,6 +288,8 @@ _HELP: dict[str, str] = {
     "api_allowed_hosts": "more names the local API may be reached by (the Host header), comma "
     "separated; 127.0.0.1, localhost, ::1 and the --api host always are. Anything else is "
     "refused: a web page cannot reach the API through a name it controls (DNS rebinding)",
+    "indicator_thresholds": "connection indicator levels (0-1, comma separated) whose crossing "
+    "is a robot.indicator event of GET /events (default 0.5,0.8)",
     "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
     "http://dashboard.local:8080), comma separated; default none: a request a browser sends "
     "for another site's page is refused",
@@ -309,6 +318,16 @@ def _coerce(name: str, raw: Any) -> Any:
     }
     if name in ("state_dir", "wifi_secret_file", "key_file"):
         return Path(str(raw))
+    if name == "indicator_thresholds":
+        items = raw.split(",") if isinstance(raw, str) else raw
+        if not isinstance(items, list | tuple):
+            raise ConfigError(f"{name}: expected a list of numbers, got {raw!r}")
+        try:
+            if any(isinstance(i, bool) for i in items):
+                raise TypeError
+            return tuple(float(i) for i in items if str(i).strip())
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: expected a list of numbers, got {raw!r}") from None
     if name in _LISTS:
         items = raw.split(",") if isinstance(raw, str) else raw
         if not isinstance(items, list | tuple) or not all(isinstance(i, str) for i in items):
@@ -392,7 +411,7 @@ def to_args(cfg: Config) -> list[str]:
         value = getattr(cfg, f.name)
         if isinstance(value, tuple):
             if value:
-                out += ["--" + f.name.replace("_", "-"), ",".join(value)]
+                out += ["--" + f.name.replace("_", "-"), ",".join(str(v) for v in value)]
         elif value is not None:
             out += ["--" + f.name.replace("_", "-"), str(value)]
     return out

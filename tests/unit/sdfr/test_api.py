@@ -87,7 +87,8 @@ async def test_publish_list_unpublish(cfg: Config, store: Store) -> None:
         assert created["version"] == 1
 
         r = await c.get("/services")
-        assert await r.json() == {"services": [created["service"]], "version": 1}
+        listed = {**created["service"], "ttl": None, "expires": None}
+        assert await r.json() == {"services": [listed], "version": 1}
 
         r = await c.delete(f"/services/{sid}")
         assert r.status == 204
