@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import ipaddress
 import os
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from sdfr import wire
+from sdfr import version_text, wire
 from sdfr._compat import tomllib
 from sdfr.errors import ConfigError
 from sdfr.model import ROBOT_ID_RE
@@ -353,19 +355,47 @@ def load_toml(path: Path) -> dict[str, object]:
         raise ConfigError(f"config: {path} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config: {path} is not valid TOML: {exc}") from None
-    table = data.get("sdfrd", data)
-    if not isinstance(table, dict):
-        raise ConfigError(f"config: [sdfrd] in {path} must be a table")
     names = {f.name for f in fields(Config)}
+    if "sdfrd" in data:
+        table = data["sdfrd"]
+        if not isinstance(table, dict):
+            raise ConfigError(f"config: [sdfrd] in {path} must be a table")
+        for key, value in data.items():
+            if key == "sdfrd":
+                continue
+            if isinstance(value, dict):
+                raise ConfigError(
+                    f"config: unknown section [{key}] in {path}{_hint(key, ['sdfrd'])}; "
+                    "sdfrd reads [sdfrd] only"
+                )
+            raise ConfigError(
+                f"config: {key!r} is at the top level of {path}, which has an [sdfrd] table: "
+                f"with one, sdfrd reads only [sdfrd]; move {key!r} into it"
+            )
+    else:
+        table = data
     out: dict[str, Any] = {}
     for key, raw in table.items():
         name = key.replace("-", "_")
+        if name not in names and isinstance(raw, dict):
+            hint = _hint(key, ["sdfrd"]).replace("'sdfrd'", "[sdfrd]")
+            raise ConfigError(
+                f"config: unknown section [{key}] in {path}{hint}; sdfrd reads [sdfrd] (or "
+                "keys at the top level)"
+            )
         if name not in names:
             raise ConfigError(
-                f"config: unknown key {key!r} in {path}; known: {', '.join(sorted(names))}"
+                f"config: unknown key {key!r} in {path}{_hint(name, names)}; "
+                f"known keys: {', '.join(sorted(names))}"
             )
         out[name] = _coerce(name, raw)
     return out
+
+
+def _hint(word: str, choices: Iterable[str]) -> str:
+    """(did you mean 'x'?) for the closest of `choices`, or nothing."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -376,7 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Every option is also a key of the TOML file given with --config (top level or "
         "under [sdfrd], same names with - or _); flags override the file.",
     )
-    p.add_argument("--config", type=Path, metavar="FILE", help="TOML config file")
+    p.add_argument("--config", type=Path, metavar="FILE", help="TOML config file (default: none)")
+    p.add_argument("--version", action="version", version=version_text("sdfrd"))
     for f in fields(Config):
         flag = "--" + f.name.replace("_", "-")
         meta = f.name.upper()

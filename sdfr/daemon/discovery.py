@@ -26,7 +26,7 @@ from pathlib import Path
 from sdfr import events, keystore, netif, status
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
-from sdfr.daemon import logs
+from sdfr.daemon import logs, notify
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.daemon.describe import DescribeServer
 from sdfr.errors import SdfrError
@@ -276,6 +276,7 @@ class DiscoveryLayer:
 
     async def _periodic(self) -> None:
         while True:
+            notify.beat()
             await asyncio.sleep(STATUS_PERIOD)
             self._guard("periodic duties", self._check_address)
             self._guard("reloading the services", self._reload_services)
