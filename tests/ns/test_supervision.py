@@ -4,6 +4,7 @@ ends sdfrd at once, a stopped (SIGSTOP) layer is restarted, and systemd's notify
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -83,9 +84,6 @@ def test_a_layer_that_cannot_start_ends_sdfrd_at_once(
     tmp_path: Path, daemons: list[Daemon]
 ) -> None:
     # 192.0.2.1 (TEST-NET-1) is no address of this machine: binding it cannot work.
-    d = Daemon(tmp_path, None)
-    d.proc.kill()
-    d.proc.wait()
     argv = sdfrd_argv(tmp_path / "s2")
     argv[argv.index("--api") + 1] = "192.0.2.1:8700"
     started = time.monotonic()
@@ -109,7 +107,7 @@ def test_a_stopped_discovery_layer_is_restarted(tmp_path: Path, daemons: list[Da
         # /health says down after 3 s; the supervisor acts after STALL_AFTER.
         poll("discovery down", lambda: d.health() == "down" or d.health(), 10.0)
         stopped_at = time.monotonic()
-        took = poll(
+        poll(
             "a new discovery layer",
             lambda: d.layers().get("discovery", old) != old or f"layers {d.layers()}",
             STALL_AFTER + 10,
@@ -135,10 +133,8 @@ class NotifySocket:
     def until(self, line: str, timeout: float) -> float:
         start = time.monotonic()
         while time.monotonic() - start < timeout:
-            try:
+            with contextlib.suppress(TimeoutError):
                 self.got += self.sock.recv(4096).decode().split("\n")
-            except TimeoutError:
-                pass
             if line in self.got:
                 return time.monotonic() - start
         raise AssertionError(f"no {line!r} within {timeout} s; got {self.got}")
