@@ -225,7 +225,7 @@ class AsyncClient:
     async def metrics(self) -> str:
         return await self.call(calls.metrics())
 
-    async def events(self, since: int = 0, kinds: Iterable[str] | None = None) -> EventsPage:
+    async def events(self, since: int | None = 0, kinds: Iterable[str] | None = None) -> EventsPage:
         return await self.call(calls.events(since, kinds))
 
     async def watch(

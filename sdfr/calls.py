@@ -275,8 +275,9 @@ def _page(answer: Any) -> EventsPage:
     }
 
 
-def events(since: int = 0, kinds: Iterable[str] | None = None) -> Call[EventsPage]:
-    """The events kept after `since`, at once (a page: ask again from `last_id`)."""
+def events(since: int | None = 0, kinds: Iterable[str] | None = None) -> Call[EventsPage]:
+    """The events kept after `since`, at once (a page: ask again from `last_id`); with
+    `since` None none, and `last_id` is the newest (where to start watching from)."""
     return Call("GET", events_path(since, kinds), _page)
 
 

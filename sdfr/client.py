@@ -315,7 +315,7 @@ class Client:
     def metrics(self) -> str:
         return self.call(calls.metrics())
 
-    def events(self, since: int = 0, kinds: Iterable[str] | None = None) -> EventsPage:
+    def events(self, since: int | None = 0, kinds: Iterable[str] | None = None) -> EventsPage:
         """The changes kept after `since` (0: all of them), at once; ask again from
         `last_id`. `kinds`: only these (e.g. `["robot.appeared", "service"]`)."""
         return self.call(calls.events(since, kinds))

@@ -163,10 +163,13 @@ async def events(request: web.Request) -> web.StreamResponse:
             raise ValidationError(key, "unknown query parameter (known: event, since)")
     state = state_of(request)
     hub = state.hub
+    hub.wake()  # (a wake-up may have been lost while nobody listened)
     after = _after(request)
     kinds = _kinds(request)
     if SSE not in request.headers.get("Accept", ""):
-        cursor, first = hub.start_at(0 if after is None else after)
+        if after is None:  # only new ones: none yet; last_id is where they will start
+            return json_response(f'{{"events":[],"last_id":{hub.last_id}}}'.encode())
+        cursor, first = hub.start_at(after)
         found = [] if first is None else [first]
         found += hub.store.events_after(cursor, PAGE)
         chosen = [e for e in found if kinds is None or e.kind in kinds or e.kind == "resync"]

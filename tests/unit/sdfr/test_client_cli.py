@@ -209,7 +209,7 @@ def test_cli_publish_services_and_unpublish(
 
     assert sdfr(["--socket", str(layer.socket), "services"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[0].split() == ["ID", "NAME", "TYPE", "URL", "ATTRIBUTES"]
+    assert out[0].split() == ["ID", "NAME", "TYPE", "URL", "ATTRIBUTES", "LEASE"]
     assert out[1].startswith(sid) and "fps=30 hdr=true model=x-1 gain=0.5" in out[1]
 
     assert sdfr(["--api", layer.api, "services", "--json"]) == 0
