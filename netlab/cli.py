@@ -34,6 +34,7 @@ from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError
 from netlab.lab import Lab
 from netlab.manifest import Manifest
 from netlab.ranges import UnitDisc
+from sdfr import version_text
 
 
 def _lab_name(text: str) -> str:
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="A fleet of SDfR robots on this machine: one network namespace per robot, "
         "running the real sdfrd, on a shared medium. Needs root.",
     )
+    p.add_argument("--version", action="version", version=version_text("netlab"))
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     up = sub.add_parser("up", help="create a lab and leave it running")

@@ -253,7 +253,7 @@ def _keys_parser(command: Callable[[str, str], argparse.ArgumentParser]) -> None
         "--socket",
         default=argparse.SUPPRESS,
         metavar="PATH",
-        help="sdfrd's unix socket (instead of --state-dir)",
+        help="sdfrd's unix socket, instead of --state-dir (default: STATE_DIR/api.sock)",
     )
     ks = k.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
     g = ks.add_parser("generate", help="write a new random fleet key to FILE (mode 0600)")
