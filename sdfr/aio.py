@@ -33,9 +33,6 @@ from sdfr.calls import (
     EventsPage,
     Health,
     JsonObject,
-    LocalServiceJson,
-    Neighbor,
-    PeerJson,
     Published,
     Renewed,
     SseParser,
@@ -199,10 +196,10 @@ class AsyncClient:
         sid = service_id or new_service_id()
         return AsyncKeptLease(self, service_body(name, type, url, attributes, sid, ttl), ttl)
 
-    async def services(self) -> list[LocalServiceJson]:
+    async def services(self) -> list[JsonObject]:
         return await self.call(calls.services())
 
-    async def neighbors(self, include_unreachable: bool = False) -> list[Neighbor]:
+    async def neighbors(self, include_unreachable: bool = False) -> list[JsonObject]:
         return await self.call(calls.neighbors(include_unreachable))
 
     async def search(
@@ -210,10 +207,10 @@ class AsyncClient:
         type: str | None = None,
         attrs: Mapping[str, AttrValue] | None = None,
         **more_attrs: AttrValue,
-    ) -> list[Neighbor]:
+    ) -> list[JsonObject]:
         return await self.call(calls.search(type, {**(attrs or {}), **more_attrs}))
 
-    async def history(self) -> list[PeerJson]:
+    async def history(self) -> list[JsonObject]:
         return await self.call(calls.history())
 
     async def self_info(self) -> JsonObject:

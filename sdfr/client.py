@@ -38,9 +38,6 @@ from sdfr.calls import (
     EventsPage,
     Health,
     JsonObject,
-    LocalServiceJson,
-    Neighbor,
-    PeerJson,
     Published,
     Renewed,
     SseParser,
@@ -279,11 +276,11 @@ class Client:
         self.call(calls.publish(name, type, url, attributes, sid, ttl))
         return KeptLease(self._twin(), body, ttl)
 
-    def services(self) -> list[LocalServiceJson]:
+    def services(self) -> list[JsonObject]:
         """This robot's registrations (with their leases' ttl and end)."""
         return self.call(calls.services())
 
-    def neighbors(self, include_unreachable: bool = False) -> list[Neighbor]:
+    def neighbors(self, include_unreachable: bool = False) -> list[JsonObject]:
         """The robots reachable now (with `include_unreachable`, all of the history map)."""
         return self.call(calls.neighbors(include_unreachable))
 
@@ -292,7 +289,7 @@ class Client:
         type: str | None = None,
         attrs: Mapping[str, AttrValue] | None = None,
         **more_attrs: AttrValue,
-    ) -> list[Neighbor]:
+    ) -> list[JsonObject]:
         """Reachable robots with a service of `type` whose attributes match the given ones
         (numbers by value, booleans as true/false, text exactly).
 
@@ -301,7 +298,7 @@ class Client:
         """
         return self.call(calls.search(type, {**(attrs or {}), **more_attrs}))
 
-    def history(self) -> list[PeerJson]:
+    def history(self) -> list[JsonObject]:
         """Every robot ever seen, reachable or not."""
         return self.call(calls.history())
 

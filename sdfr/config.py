@@ -289,7 +289,8 @@ _HELP: dict[str, str] = {
     "the fleet has no key), on or off (default auto)",
     "api_allowed_hosts": "more names the local API may be reached by (the Host header), comma "
     "separated; 127.0.0.1, localhost, ::1 and the --api host always are. Anything else is "
-    "refused: a web page cannot reach the API through a name it controls (DNS rebinding)",
+    "refused: a web page cannot reach the API through a name it controls (DNS rebinding) "
+    "(default: none more)",
     "indicator_thresholds": "connection indicator levels (0-1, comma separated) whose crossing "
     "is a robot.indicator event of GET /events (default 0.5,0.8)",
     "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
