@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -230,8 +231,23 @@ def build_parser() -> argparse.ArgumentParser:
         )
     c.add_argument("--dry-run", action="store_true", help="print what would be done, do nothing")
     c.add_argument("--show-key", action="store_true", help="print the WiFi key instead of ****")
+    c = command(
+        "example",
+        "print a file installed with sdfr (does not talk to sdfrd): robot.toml, a robot's "
+        "configuration; sdfrd.service, the systemd unit (docs/deploy.md)",
+    )
+    c.add_argument("name", choices=EXAMPLES, help=f"one of {', '.join(EXAMPLES)}")
     _keys_parser(command)
     return p
+
+
+#: The files of sdfr/deploy that `sdfr example` prints.
+EXAMPLES = ("robot.toml", "sdfrd.service")
+
+
+def example_text(name: str) -> str:
+    """A file installed with the package (sdfr/deploy/NAME)."""
+    return (resources.files("sdfr") / "deploy" / name).read_text()
 
 
 def _keys_parser(command: Callable[[str, str], argparse.ArgumentParser]) -> None:
@@ -775,6 +791,9 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     if args.command == "wifi-config":
         return _wifi_config(args)
+    if args.command == "example":
+        sys.stdout.write(example_text(args.name))
+        return 0
     if args.command == "keys":
         return _keys(args)
     try:
