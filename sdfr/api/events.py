@@ -129,16 +129,23 @@ class EventHub:
                 yield None
 
 
-def _after(request: web.Request) -> int | None:
-    raw = request.headers.get("Last-Event-ID")
-    name = "Last-Event-ID"
-    if raw is None:
-        raw, name = request.query.get("since"), "since"
+#: The largest event id (SQLite's INTEGER).
+ID_MAX = 2**63 - 1
+
+
+def _event_id(name: str, raw: str | None) -> int | None:
     if raw is None:
         return None
-    if not raw.isdigit() or len(raw) > 19:
+    if not raw.isdigit() or len(raw) > 19 or int(raw) > ID_MAX:
         raise ValidationError(name, "must be an event id (a whole number, 0 for the oldest kept)")
     return int(raw)
+
+
+def _after(request: web.Request) -> int | None:
+    """Where to start: the Last-Event-ID header (a reconnecting EventSource's), else `since`."""
+    since = _event_id("since", request.query.get("since"))
+    header = _event_id("Last-Event-ID", request.headers.get("Last-Event-ID"))
+    return header if header is not None else since
 
 
 def _kinds(request: web.Request) -> frozenset[str] | None:

@@ -211,11 +211,10 @@ async def hold(request: web.Request) -> web.StreamResponse:
     ttl. A program that cannot run a timer keeps its services alive with one request."""
     state = state_of(request)
     service_id = request.match_info["id"]
-    if "text/event-stream" not in request.headers.get("Accept", ""):
-        raise RequestError(
-            406, "hold answers a stream of events: send Accept: text/event-stream", "Accept"
-        )
     lease = await _renew(state, service_id, None)
+    if "text/event-stream" not in request.headers.get("Accept", ""):
+        # A client that cannot read a stream gets one renewal (as /renew), not a hang.
+        return json_response({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
     resp = web.StreamResponse(
         headers={"Content-Type": "text/event-stream; charset=utf-8", "Cache-Control": "no-cache"}
     )

@@ -125,18 +125,21 @@ def openapi_document() -> dict[str, object]:
                 "operationId": "holdService",
                 "tags": ["services"],
                 "summary": "Renew a lease for as long as this request stays open",
-                "description": "Needs `Accept: text/event-stream`. An event `renewed` (data: "
-                "the Renewed object) each third of the ttl; `gone` if the service is "
-                "unpublished meanwhile. When the connection closes (its program ended), the "
-                "lease runs out after its ttl.",
+                "description": "With `Accept: text/event-stream`: an event `renewed` (data: "
+                "the Renewed object) each third of the ttl, for as long as the connection "
+                "stays open; `gone` if the service is unpublished meanwhile. When the "
+                "connection closes (its program ended), the lease runs out after its ttl. "
+                "Without, it renews once and answers like /renew.",
                 "parameters": service_id_param,
                 "responses": {
                     "200": {
-                        "description": "A stream of Server-Sent Events",
-                        "content": {"text/event-stream": {"schema": {"type": "string"}}},
+                        "description": "A stream of Server-Sent Events, or one renewal",
+                        "content": {
+                            "text/event-stream": {"schema": {"type": "string"}},
+                            "application/json": {"schema": _ref("Renewed")},
+                        },
                     },
                     "404": _ERROR,
-                    "406": {**_ERROR, "description": "Accept does not name text/event-stream"},
                     "409": {**_ERROR, "description": "The service has no lease"},
                 },
             }
