@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-py310 test-netem check fmt bench bench-auth bench-flood bench-traffic netlab image compose-up compose-down clean distclean
+.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -44,9 +44,16 @@ fmt: $(STAMP)
 bench: $(STAMP)
 	mkdir -p runs
 	$(BIN)/python -m bench.api_latency | tee runs/bench-api.json
+	$(MAKE) --no-print-directory bench-events
 	$(MAKE) --no-print-directory bench-auth
 	$(MAKE) --no-print-directory bench-flood
 	$(MAKE) --no-print-directory bench-traffic
+
+# What GET /events costs: the event log's append and size, change -> subscriber latency for
+# 1, 16 and 64 streams, the API layer's CPU (~30 s); JSON in runs/bench-events.json.
+bench-events: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.events
 
 # What authenticated datagrams cost: bytes and CPU per datagram, signed vs unsigned, and a
 # 6-robot fleet's bytes open vs keyed (a few seconds); JSON in runs/bench-auth.json.
