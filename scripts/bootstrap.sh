@@ -14,6 +14,8 @@ APT_NEEDS=(
     "iputils-ping:ping"
     "procps:pgrep"
     "python3-venv:"
+    "systemd:systemd-analyze"
+    "systemd-container:systemd-nspawn"
 )
 
 missing=()
