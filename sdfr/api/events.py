@@ -70,6 +70,14 @@ class EventHub:
         news, self._news = self._news, asyncio.Event()
         news.set()
 
+    async def closing(self, timeout: float) -> bool:
+        """Wait up to `timeout` seconds for the server to stop; True when it does."""
+        try:
+            await asyncio.wait_for(self._closing.wait(), timeout)
+        except asyncio.TimeoutError:
+            return False
+        return True
+
     def close(self) -> None:
         """The server stops: every stream ends."""
         self._closing.set()

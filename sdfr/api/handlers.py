@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import logging
@@ -223,7 +222,8 @@ async def hold(request: web.Request) -> web.StreamResponse:
         while True:
             body = json.dumps({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
             await resp.write(f"event: renewed\ndata: {body}\n\n".encode())
-            await asyncio.sleep(max(0.2, lease.ttl * HOLD_EVERY))
+            if await state.hub.closing(max(0.2, lease.ttl * HOLD_EVERY)):
+                break  # sdfrd stops: the lease runs its ttl (a restart is quicker than that)
             try:
                 lease = await _renew(state, service_id, None)
             except RequestError as exc:
