@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+import sdfr
 from sdfr import __version__, cli, config
 
 
@@ -68,3 +69,13 @@ def test_version_on_every_command(module: str) -> None:
     )
     assert res.returncode == 0, res.stderr
     assert f"{__version__} (sdfr-robots, Python " in res.stdout
+
+
+def test_the_message_of_a_missing_extra_names_the_install_command() -> None:
+    # For commands that need an optional extra (netlab's plots and pcap analysis): no sdfr
+    # command needs one; netlab's use this message.
+    text = sdfr.need_extra("netlab", "netlab report", "matplotlib")
+    assert text == (
+        "netlab report needs the 'netlab' extra (matplotlib is not installed): "
+        "pip install 'sdfr-robots[netlab]'"
+    )
