@@ -390,9 +390,5 @@ def change(data: str) -> Change:
     return Change.from_json(cast(JsonObject, obj))
 
 
-def watch_path(since: int | None, kinds: Iterable[str] | None) -> str:
-    return events_path(since, kinds)
-
-
 #: Headers of a request for an event stream.
 STREAM_HEADERS = {"Accept": "text/event-stream", "Cache-Control": "no-cache"}

@@ -133,3 +133,25 @@ def test_sync_lease_keeps_and_republishes(layer: ApiLayer) -> None:
             time.sleep(0.8)
             assert kept.error is None and kept.renewals >= 2
         assert kept.id not in {s["id"] for s in c.services()}
+
+
+def test_the_clients_answer_types_match_the_api_models() -> None:
+    """The TypedDicts of sdfr.calls name the fields of the API's own models (which the
+    OpenAPI document, and schemathesis against the daemon, are made from)."""
+    import msgspec
+
+    from sdfr import calls
+    from sdfr.api import models
+
+    pairs = [
+        (calls.ServiceJson, models.ServiceOutput),
+        (calls.LocalServiceJson, models.LocalService),
+        (calls.Published, models.Published),
+        (calls.Renewed, models.Renewed),
+        (calls.Neighbor, models.Neighbor),
+        (calls.PeerJson, models.PeerJson),
+        (calls.Health, models.Health),
+    ]
+    for typed, model in pairs:
+        fields = {f.name for f in msgspec.structs.fields(model)}
+        assert set(typed.__annotations__) | set(typed.__required_keys__) == fields, typed
