@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-netem check fmt bench bench-auth bench-flood bench-traffic netlab image compose-up compose-down clean distclean
+.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -19,7 +19,13 @@ venv:
 
 test: $(STAMP)
 	$(BIN)/pytest -q tests/
+	$(MAKE) --no-print-directory test-py310
 	$(MAKE) --no-print-directory test-netem
+
+# The Python 3.10 tier (Ubuntu 22.04 / ROS 2 Humble / Jetson): the unit tests and fleet tests
+# under 3.10 in .venv310. Fails if no 3.10 can be had; SDFR_SKIP_PY310=1 skips it, saying so.
+test-py310: $(STAMP)
+	bash scripts/py310.sh
 
 # The netem tier: tests/netem in a Debian kernel under virtme-ng (this kernel has no
 # sch_netem). Fails if the VM cannot run; SDFR_SKIP_VM=1 skips it, saying so.
@@ -38,9 +44,16 @@ fmt: $(STAMP)
 bench: $(STAMP)
 	mkdir -p runs
 	$(BIN)/python -m bench.api_latency | tee runs/bench-api.json
+	$(MAKE) --no-print-directory bench-events
 	$(MAKE) --no-print-directory bench-auth
 	$(MAKE) --no-print-directory bench-flood
 	$(MAKE) --no-print-directory bench-traffic
+
+# What GET /events costs: the event log's append and size, change -> subscriber latency for
+# 1, 16 and 64 streams, the API layer's CPU (~30 s); JSON in runs/bench-events.json.
+bench-events: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.events
 
 # What authenticated datagrams cost: bytes and CPU per datagram, signed vs unsigned, and a
 # 6-robot fleet's bytes open vs keyed (a few seconds); JSON in runs/bench-auth.json.
@@ -99,4 +112,4 @@ clean:
 	rm -rf .pytest_cache .mypy_cache .ruff_cache .hypothesis build dist
 
 distclean: clean
-	rm -rf $(VENV) runs *.egg-info
+	rm -rf $(VENV) .venv310 runs *.egg-info

@@ -148,16 +148,16 @@ def server_histograms(w: Worker) -> dict[tuple[str, str], tuple[list[tuple[float
         return {}
     hist: dict[tuple[str, str], tuple[list[tuple[float, int]], float]] = {}
     for line in text.decode().splitlines():
-        if not line.startswith("sdfr_api_request_seconds_"):
+        if not line.startswith("sdfr_api_request_duration_seconds_"):
             continue
         name, _, value = line.rpartition(" ")
         labels = dict(part.split("=", 1) for part in name[name.index("{") + 1 : -1].split(","))
         key = (labels["method"].strip('"'), labels["route"].strip('"'))
         buckets, total = hist.get(key, ([], 0.0))
-        if name.startswith("sdfr_api_request_seconds_bucket"):
+        if name.startswith("sdfr_api_request_duration_seconds_bucket"):
             le = labels["le"].strip('"')
             buckets.append((float("inf") if le == "+Inf" else float(le), int(float(value))))
-        elif name.startswith("sdfr_api_request_seconds_sum"):
+        elif name.startswith("sdfr_api_request_duration_seconds_sum"):
             total = float(value)
         hist[key] = (buckets, total)
     return hist

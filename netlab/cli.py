@@ -46,6 +46,7 @@ from netlab.lab import Lab
 from netlab.manifest import Manifest
 from netlab.ranges import UnitDisc
 from netlab.robots import RUNTIMES
+from sdfr import version_text
 
 if TYPE_CHECKING:
     from netlab.scenario import Scenario
@@ -118,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(a namespace, or a container's), running the real sdfrd, on a shared medium. "
         "Needs root.",
     )
+    p.add_argument("--version", action="version", version=version_text("netlab"))
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     up = sub.add_parser(

@@ -14,6 +14,8 @@ APT_NEEDS=(
     "iputils-ping:ping"
     "procps:pgrep"
     "python3-venv:"
+    "systemd:systemd-analyze"
+    "systemd-container:systemd-nspawn"
 )
 
 missing=()
@@ -58,6 +60,8 @@ stamp=.venv/.installed
 if [ ! -e "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "bootstrap: pip install -e '.[dev,netlab]'"
     log=$(mktemp)
+    # The distribution was called sdfr before it became sdfr-robots: drop a stale install.
+    .venv/bin/python -m pip uninstall -y -q sdfr >/dev/null 2>&1 || true
     if ! .venv/bin/python -m pip install -q --disable-pip-version-check --no-input \
         -e '.[dev,netlab]' >"$log" 2>&1 </dev/null; then
         cat "$log" >&2

@@ -6,17 +6,20 @@ import argparse
 import json
 import math
 import os
+import signal
 import stat
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from sdfr import keystore, netif, wifi
+from sdfr import keystore, netif, version_text, wifi
 from sdfr.auth import MODES
 from sdfr.client import (
+    Change,
     Client,
     neighbors_path,
     search_path,
@@ -25,6 +28,7 @@ from sdfr.client import (
 )
 from sdfr.config import DEFAULT_API, default_state_dir, from_args, option_help
 from sdfr.errors import ApiError, ConfigError, SdfrError
+from sdfr.events import FAMILIES, KINDS, kind_filter
 from sdfr.model import AttrValue, attr_text
 
 Row = Sequence[object]
@@ -66,12 +70,48 @@ def typed_value(text: str) -> AttrValue:
     return text
 
 
+#: Longest --timeout (seconds): longer, and a dead daemon looks like a hung command.
+TIMEOUT_MAX = 3600.0
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value <= TIMEOUT_MAX:  # (NaN fails too)
+        raise argparse.ArgumentTypeError(
+            f"expected a number of seconds above 0 and at most {TIMEOUT_MAX:.0f}, got {text!r}"
+        )
+    return value
+
+
+def _event_id(text: str) -> int:
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected an event id (a whole number), got {text!r}")
+    return int(text)
+
+
+def _kind(text: str) -> str:
+    try:
+        kind_filter([text])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+_KINDS_HELP = ", ".join([*sorted(FAMILIES), *KINDS])
+
+
 def build_parser() -> argparse.ArgumentParser:
     # --json is accepted before and after the command; SUPPRESS keeps the later from
     # resetting the earlier.
     json_flag = argparse.ArgumentParser(add_help=False)
     json_flag.add_argument(
-        "--json", action="store_true", default=argparse.SUPPRESS, help="print the JSON answer"
+        "--json",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print the JSON answer (default: a table)",
     )
     p = argparse.ArgumentParser(
         prog="sdfr",
@@ -79,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
         "publish this robot's services.",
         parents=[json_flag],
     )
+    p.add_argument("--version", action="version", version=version_text("sdfr"))
     where = p.add_mutually_exclusive_group()
     where.add_argument(
         "--api",
@@ -88,10 +129,17 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"sdfrd's REST API (default {DEFAULT_API})",
     )
     where.add_argument(
-        "--socket", metavar="PATH", help="sdfrd's unix socket instead (STATE_DIR/api.sock)"
+        "--socket",
+        metavar="PATH",
+        help="sdfrd's unix socket instead, STATE_DIR/api.sock (default: none, --api is used)",
     )
     p.add_argument(
-        "--timeout", type=float, default=5.0, metavar="SECONDS", help="default 5 seconds"
+        "--timeout",
+        type=_seconds,
+        default=5.0,
+        metavar="SECONDS",
+        help=f"how long to wait for sdfrd's answer, above 0 and at most {TIMEOUT_MAX:.0f} "
+        "(default 5)",
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -100,29 +148,70 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = command("neighbors", "robots reachable now and their services")
     c.add_argument("--all", action="store_true", help="also robots out of reach (history)")
+    c.add_argument(
+        "--watch",
+        action="store_true",
+        help="then print each change of the robots as it happens, until Ctrl-C",
+    )
     c = command("publish", "publish a service of this robot; prints its id")
-    c.add_argument("name")
-    c.add_argument("type", help="e.g. camera/rgb")
-    c.add_argument("--url")
+    c.add_argument("name", help="what people call it, e.g. 'front camera'")
+    c.add_argument("type", help="what it is, searched by equality, e.g. camera/rgb")
+    c.add_argument("--url", help="where to reach it (default: none)")
     c.add_argument(
         "--attr",
         type=_attr,
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="an attribute (repeatable); true/false and numbers are typed",
+        help="an attribute (repeatable); true/false and numbers are typed (default: none)",
+    )
+    c.add_argument(
+        "--ttl",
+        type=_seconds,
+        metavar="SECONDS",
+        help="a lease: withdrawn from the fleet SECONDS after its last renewal "
+        "(`sdfr renew ID`) (default: none, it lives until unpublished)",
+    )
+    c.add_argument(
+        "--hold",
+        action="store_true",
+        help="with --ttl: stay running and renew it until Ctrl-C, then unpublish it",
     )
     c = command("unpublish", "withdraw a service of this robot")
-    c.add_argument("id")
+    c.add_argument("id", help="its id (as publish printed it)")
+    c = command("renew", "renew the lease of a service of this robot")
+    c.add_argument("id", help="its id")
+    c.add_argument(
+        "--ttl", type=_seconds, metavar="SECONDS", help="a new ttl (default: the lease's own)"
+    )
     c = command("search", "reachable robots offering matching services")
-    c.add_argument("--type")
+    c.add_argument("--type", help="the service type (default: any)")
     c.add_argument(
         "--attr",
         type=_attr,
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="an attribute the service must have (repeatable)",
+        help="an attribute the service must have (repeatable; numbers match by value, "
+        "true/false booleans) (default: none)",
+    )
+    c = command(
+        "events",
+        "changes as they happen (robots appearing, leaving, unreachable, their services, "
+        "indicator thresholds; this robot's registrations), until Ctrl-C",
+    )
+    c.add_argument(
+        "--since",
+        type=_event_id,
+        metavar="ID",
+        help="first the changes kept after this event id, 0 for all (default: only new ones)",
+    )
+    c.add_argument(
+        "--event",
+        type=_kind,
+        action="append",
+        metavar="KIND",
+        help=f"only this kind or family (repeatable): {_KINDS_HELP} (default: all)",
     )
     command("history", "every robot ever seen, reachable or not")
     command("self", "this robot")
@@ -133,15 +222,32 @@ def build_parser() -> argparse.ArgumentParser:
         "the fleet's ad-hoc WiFi set-up sdfrd applies at start (from sdfrd's config; does not "
         "talk to sdfrd): prints it, and applies it unless --dry-run (needs root)",
     )
-    c.add_argument("--config", type=Path, metavar="FILE", help="sdfrd's TOML config file")
+    c.add_argument(
+        "--config", type=Path, metavar="FILE", help="sdfrd's TOML config file (default: none)"
+    )
     for name in WIFI_CONFIG_OPTIONS:
         c.add_argument(
             "--" + name.replace("_", "-"), dest=name, metavar=name.upper(), help=option_help(name)
         )
     c.add_argument("--dry-run", action="store_true", help="print what would be done, do nothing")
     c.add_argument("--show-key", action="store_true", help="print the WiFi key instead of ****")
+    c = command(
+        "example",
+        "print a file installed with sdfr (does not talk to sdfrd): robot.toml, a robot's "
+        "configuration; sdfrd.service, the systemd unit (docs/deploy.md)",
+    )
+    c.add_argument("name", choices=EXAMPLES, help=f"one of {', '.join(EXAMPLES)}")
     _keys_parser(command)
     return p
+
+
+#: The files of sdfr/deploy that `sdfr example` prints.
+EXAMPLES = ("robot.toml", "sdfrd.service")
+
+
+def example_text(name: str) -> str:
+    """A file installed with the package (sdfr/deploy/NAME)."""
+    return (resources.files("sdfr") / "deploy" / name).read_text()
 
 
 def _keys_parser(command: Callable[[str, str], argparse.ArgumentParser]) -> None:
@@ -163,25 +269,25 @@ def _keys_parser(command: Callable[[str, str], argparse.ArgumentParser]) -> None
         "--socket",
         default=argparse.SUPPRESS,
         metavar="PATH",
-        help="sdfrd's unix socket (instead of --state-dir)",
+        help="sdfrd's unix socket, instead of --state-dir (default: STATE_DIR/api.sock)",
     )
     ks = k.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
     g = ks.add_parser("generate", help="write a new random fleet key to FILE (mode 0600)")
-    g.add_argument("file", type=Path, metavar="FILE")
+    g.add_argument("file", type=Path, metavar="FILE", help="where to write the key")
     g.add_argument("--force", action="store_true", help="replace FILE if it exists")
     ks.add_parser("list", help="key ids, which one signs, the mode, datagrams received per key")
     i = ks.add_parser("install", help="accept the key in FILE from now on (it signs after `use`)")
-    i.add_argument("file", type=Path, metavar="FILE")
+    i.add_argument("file", type=Path, metavar="FILE", help="the key file")
     u = ks.add_parser("use", help="sign with key ID from now on")
-    u.add_argument("id", metavar="ID")
+    u.add_argument("id", metavar="ID", help="the key's id (`sdfr keys list`)")
     r = ks.add_parser("remove", help="stop accepting key ID (not the one in use)")
-    r.add_argument("id", metavar="ID")
+    r.add_argument("id", metavar="ID", help="the key's id (`sdfr keys list`)")
     m = ks.add_parser(
         "mode",
         help="accept (send unsigned, accept both), sign (send signed, accept both), enforce "
         "(send signed, accept only signed)",
     )
-    m.add_argument("mode", choices=MODES)
+    m.add_argument("mode", choices=MODES, help="accept, sign or enforce")
 
 
 # sdfrd options that `sdfr wifi-config` takes too (wifi_secret is left out on purpose: a flag is
@@ -293,8 +399,18 @@ def _show_services(answer: dict[str, Any]) -> str:
     if not services:
         return "no services published"
     return table(
-        ["ID", "NAME", "TYPE", "URL", "ATTRIBUTES"],
-        [(s["id"], s["name"], s["type"], s["url"], _attrs(s.get("attributes"))) for s in services],
+        ["ID", "NAME", "TYPE", "URL", "ATTRIBUTES", "LEASE"],
+        [
+            (
+                s["id"],
+                s["name"],
+                s["type"],
+                s["url"],
+                _attrs(s.get("attributes")),
+                f"{s['ttl']:g} s" if isinstance(s.get("ttl"), int | float) else "-",
+            )
+            for s in services
+        ],
     )
 
 
@@ -339,7 +455,7 @@ def _show_self(answer: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n\n" + _show_services(answer)
 
 
-def _show_health(answer: dict[str, Any]) -> str:
+def _show_health(answer: Mapping[str, Any]) -> str:
     age = answer.get("discovery_heartbeat_age")
     beat = f", last heartbeat {age:.1f}s ago" if isinstance(age, int | float) else ""
     auth = f", fleet key: {answer['auth']}" if answer.get("auth") else ""
@@ -383,8 +499,14 @@ def _neighbors(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
 
 def _publish(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
     attrs = {key: typed_value(value) for key, value in args.attr}
-    answer = client.publish_service(args.name, args.type, args.url, attrs or None)
+    answer = client.publish_service(args.name, args.type, args.url, attrs or None, ttl=args.ttl)
     return answer, str(answer["id"])
+
+
+def _renew(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
+    answer = client.renew(args.id, args.ttl)
+    until = time.strftime("%H:%M:%S", time.localtime(answer["expires"]))
+    return answer, f"{args.id}: lease of {answer['ttl']:g} s, until {until}"
 
 
 def _unpublish(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
@@ -414,6 +536,7 @@ COMMANDS: dict[str, Command] = {
     "neighbors": _neighbors,
     "publish": _publish,
     "unpublish": _unpublish,
+    "renew": _renew,
     "search": _search,
     "history": _get("/history", _show_history),
     "self": _get("/self", _show_self),
@@ -482,6 +605,88 @@ def _wifi_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _hold(client: Client, args: argparse.Namespace) -> int:
+    """`sdfr publish ... --ttl T --hold`: keep the lease until interrupted, then unpublish."""
+    attrs = {key: typed_value(value) for key, value in args.attr}
+    stop = {signal.SIGINT, signal.SIGTERM}
+    # Blocked before the renewing thread starts (it inherits the mask), so that the signal
+    # ends the wait below, and the lease is unpublished, whichever thread it was sent to.
+    signal.pthread_sigmask(signal.SIG_BLOCK, stop)
+    try:
+        with client.lease(args.name, args.type, args.url, attrs or None, ttl=args.ttl) as kept:
+            print(kept.id, flush=True)
+            signal.sigwait(stop)
+            print(f"sdfr: unpublishing {kept.id}", file=sys.stderr)
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, stop)
+    return 0
+
+
+def _clock(epoch: float) -> str:
+    return time.strftime("%H:%M:%S", time.localtime(epoch)) + f".{int(epoch % 1 * 1000):03d}"
+
+
+def describe_change(change: Change) -> str:
+    """One line for a human: when, what, which robot, the details that matter."""
+    d = change.data
+    who = change.robot_id or "this robot"
+    kind = change.event
+    if kind == "robot.appeared":
+        names = _names(d.get("services") or [])
+        what = f"appeared at {d.get('address') or '-'}" + ("" if d.get("new") else " again")
+        if d.get("services_truncated"):
+            names = f"{d.get('services_count')} services"
+        text = f"+ {who} {what} ({names})"
+    elif kind in ("robot.left", "robot.unreachable"):
+        how = "left (said goodbye)" if kind == "robot.left" else "became unreachable"
+        reason = f", {d['reason']}" if d.get("reason") else ""
+        text = f"- {who} {how}{reason}"
+    elif kind == "robot.services":
+        parts = [f"+{s.get('name')}" for s in d.get("added") or []]
+        parts += [f"-{sid}" for sid in d.get("removed") or []]
+        parts += [f"~{s.get('name')}" for s in d.get("changed") or []]
+        text = f"~ {who} services: {' '.join(parts) or 'changed'}"
+    elif kind == "robot.address":
+        text = f"~ {who} moved from {d.get('previous')} to {d.get('address')}"
+    elif kind == "robot.indicator":
+        arrow = "rose above" if d.get("direction") == "up" else "fell below"
+        text = f"! {who} indicator {_indicator(d.get('indicator'))} {arrow} {d.get('threshold')}"
+    elif kind == "robot.forgotten":
+        text = f"- {who} forgotten (the history map was full)"
+    elif kind.startswith("service."):
+        service = d.get("service") or {}
+        name = f" {service.get('name')!r}" if service else ""
+        verb = kind.split(".")[1]
+        lease = f", lease {d['ttl']:g} s" if d.get("ttl") else ""
+        text = f"* {verb} {d.get('service_id')}{name}{lease}"
+    elif kind == "resync":
+        text = "! some changes are no longer kept: read the state again (sdfr neighbors)"
+    else:
+        text = f"? {kind} {who}"
+    return f"{_clock(change.time)}  {text}"
+
+
+def _stream(client: Client, args: argparse.Namespace, as_json: bool) -> None:
+    """`sdfr events` and `sdfr neighbors --watch`: print changes until interrupted."""
+    if args.command == "neighbors":
+        kinds: list[str] = ["robot"]
+        # The stream first, from the newest id, so that no change falls between the two.
+        since: int | None = client.events(since=None)["last_id"]
+        answer = client.request("GET", neighbors_path(args.all))
+        if as_json:
+            print(json.dumps({"event": "snapshot", **answer}, ensure_ascii=False), flush=True)
+        else:
+            print(_show_neighbors(answer), flush=True)
+    else:
+        kinds = args.event or []
+        since = args.since
+    for change in client.watch(kinds, since):
+        if as_json:
+            print(json.dumps(change.data, ensure_ascii=False), flush=True)
+        else:
+            print(describe_change(change), flush=True)
+
+
 _CHECK_SOCKET = "is it running, and is --state-dir (or --socket) right?"
 _NEED_ACCESS = "key management needs access to the socket (root, or the socket's group)"
 
@@ -534,7 +739,8 @@ def _keys(args: argparse.Namespace) -> int:
                     if exc.status != 0 or not exc.message.startswith("cannot reach"):
                         raise
                     hint = _NEED_ACCESS if "Permission denied" in exc.message else _CHECK_SOCKET
-                    raise ApiError(0, f"{exc.message}; {hint}") from None
+                    what = exc.message.partition(";")[0]  # (the client's hint is for the API)
+                    raise ApiError(0, f"{what}; {hint}") from None
     except (ConfigError, ApiError) as exc:
         print(f"sdfr: {exc}", file=sys.stderr)
         return 1
@@ -579,14 +785,24 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
         if args.command == "search" and args.type is None and not args.attr:
             parser.error("search: give --type T and/or --attr KEY=VALUE")
+        if args.command == "publish" and args.hold and args.ttl is None:
+            parser.error("publish: --hold keeps a lease: give --ttl SECONDS too")
     except SystemExit as exc:  # usage error (2) or --help (0); argparse printed why
         return exc.code if isinstance(exc.code, int) else 2
     if args.command == "wifi-config":
         return _wifi_config(args)
+    if args.command == "example":
+        sys.stdout.write(example_text(args.name))
+        return 0
     if args.command == "keys":
         return _keys(args)
     try:
         with Client(args.api, unix_socket=args.socket, timeout=args.timeout) as client:
+            if args.command == "events" or (args.command == "neighbors" and args.watch):
+                _stream(client, args, getattr(args, "json", False))
+                return 0
+            if args.command == "publish" and args.hold:
+                return _hold(client, args)
             answer, text = COMMANDS[args.command](client, args)
         if getattr(args, "json", False):
             if answer is not None:

@@ -4,9 +4,14 @@
         sid = sdfr.publish("front camera", "camera/rgb", attributes={"fps": 30})
         for robot in sdfr.search("camera/rgb", fps=30):
             ...
+        with sdfr.lease("arm", "actuator/arm", ttl=10):   # withdrawn if this program dies
+            ...
+        for change in sdfr.watch(["robot"]):     # live changes (GET /events)
+            ...
 
 One keep-alive connection per client (TCP, or the daemon's unix socket
-STATE_DIR/api.sock); not safe to share between threads.
+STATE_DIR/api.sock); not safe to share between threads. `sdfr.aio.AsyncClient` has the same
+calls for asyncio; both are made of the call definitions in `sdfr.calls`.
 """
 
 from __future__ import annotations
@@ -14,22 +19,55 @@ from __future__ import annotations
 import base64
 import http.client
 import json
-import secrets
 import socket
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any
-from urllib.parse import quote, urlencode
+from typing import Any, TypeVar
 
+from sdfr import calls
+from sdfr.calls import (
+    RENEW_EVERY,
+    RETRY_DELAYS,
+    STREAM_HEADERS,
+    STREAM_IDLE,
+    Call,
+    Change,
+    EventsPage,
+    Health,
+    JsonObject,
+    Published,
+    Renewed,
+    SseParser,
+    neighbors_path,
+    new_service_id,
+    search_path,
+    service_body,
+    service_path,
+    split_api,
+)
 from sdfr.config import DEFAULT_API
 from sdfr.errors import ApiError
-from sdfr.model import AttrValue, attr_text
+from sdfr.model import AttrValue
 
-JsonObject = dict[str, Any]
-#: Pauses before sending a publish again when sdfrd could not be reached (it may restart).
-RETRY_DELAYS = (0.2, 1.0)
+T = TypeVar("T")
+
+__all__ = [
+    "RETRY_DELAYS",
+    "Change",
+    "Client",
+    "JsonObject",
+    "KeptLease",
+    "UnixHTTPConnection",
+    "neighbors_path",
+    "new_service_id",
+    "search_path",
+    "service_body",
+    "service_path",
+    "split_api",
+]
 
 # What a server closing an idle keep-alive connection looks like; worth one fresh attempt.
 _DROPPED = (
@@ -58,54 +96,6 @@ class UnixHTTPConnection(http.client.HTTPConnection):
         self.sock = sock
 
 
-def neighbors_path(include_unreachable: bool = False) -> str:
-    return "/neighbors?all=1" if include_unreachable else "/neighbors"
-
-
-def search_path(type: str | None = None, attrs: Mapping[str, AttrValue] | None = None) -> str:
-    """The search URL; attribute values compare as text (`true`, `30`, `0.5`)."""
-    query: list[tuple[str, str]] = []
-    if type is not None:
-        query.append(("type", type))
-    query += [(f"attr.{key}", attr_text(value)) for key, value in (attrs or {}).items()]
-    return "/neighbors/search?" + urlencode(query)
-
-
-def service_path(service_id: str) -> str:
-    return "/services/" + quote(service_id, safe="")
-
-
-def new_service_id() -> str:
-    """A fresh service id (12 hex characters), chosen by the client so that a retry of the
-    same publish cannot store it twice."""
-    return secrets.token_hex(6)
-
-
-def service_body(
-    name: str,
-    type: str,
-    url: str | None = None,
-    attributes: Mapping[str, AttrValue] | None = None,
-    service_id: str | None = None,
-) -> JsonObject:
-    body: JsonObject = {"name": name, "type": type}
-    if service_id is not None:
-        body["id"] = service_id
-    if url is not None:
-        body["url"] = url
-    if attributes is not None:
-        body["attributes"] = dict(attributes)
-    return body
-
-
-def split_api(api: str) -> tuple[str, int]:
-    hostport = api.removeprefix("http://").rstrip("/")
-    host, sep, port = hostport.rpartition(":")
-    if not sep or not host or not port.isdigit():
-        raise ValueError(f"api: expected HOST:PORT (e.g. {DEFAULT_API}), got {api!r}")
-    return host.strip("[]"), int(port)
-
-
 def _reason(exc: BaseException) -> str:
     if isinstance(exc, TimeoutError):
         return "timed out"
@@ -125,6 +115,7 @@ class Client:
         timeout: float = 5.0,
         retry_delays: Sequence[float] = RETRY_DELAYS,
     ) -> None:
+        self.api = api
         self.timeout = timeout
         #: Pauses before sending a publish again when sdfrd could not be reached.
         self.retry_delays = tuple(retry_delays)
@@ -156,10 +147,18 @@ class Client:
     ) -> None:
         self.close()
 
-    def _connection(self) -> http.client.HTTPConnection:
+    def _twin(self) -> Client:
+        """Another client of the same daemon (for a thread of its own)."""
+        return Client(self.api, unix_socket=self._unix, timeout=self.timeout, retry_delays=())
+
+    def _connection(self, timeout: float | None = None) -> http.client.HTTPConnection:
+        timeout = self.timeout if timeout is None else timeout
         if self._unix is not None:
-            return UnixHTTPConnection(self._unix, timeout=self.timeout)
-        return http.client.HTTPConnection(self._host, self._port, timeout=self.timeout)
+            return UnixHTTPConnection(self._unix, timeout=timeout)
+        return http.client.HTTPConnection(self._host, self._port, timeout=timeout)
+
+    def _unreachable(self, exc: BaseException) -> ApiError:
+        return calls.unreachable(self.where, _reason(exc), self._unix is not None)
 
     def _exchange(self, method: str, path: str, body: bytes | None) -> tuple[int, str, bytes]:
         headers = {"Accept": "application/json"}
@@ -176,13 +175,29 @@ class Client:
                 self.close()
                 if not fresh:
                     continue  # the server closed the idle connection: once more on a new one
-                raise ApiError(0, f"cannot reach sdfrd at {self.where}: {_reason(exc)}") from None
+                raise self._unreachable(exc) from None
             except (OSError, http.client.HTTPException) as exc:
                 self.close()
-                raise ApiError(0, f"cannot reach sdfrd at {self.where}: {_reason(exc)}") from None
+                raise self._unreachable(exc) from None
             if resp.will_close:
                 self.close()
             return resp.status, resp.getheader("Content-Type", ""), data
+
+    def call(self, call: Call[T]) -> T:
+        """Carry out one call of `sdfr.calls`; sent again after RETRY_DELAYS when it may be
+        and sdfrd could not be reached."""
+        payload = None if call.body is None else json.dumps(call.body).encode()
+        delays = self.retry_delays if call.retry_unreachable else ()
+        for delay in (*delays, None):
+            try:
+                status, ctype, data = self._exchange(call.method, call.path, payload)
+            except ApiError:
+                if delay is None:
+                    raise
+                time.sleep(delay)
+                continue
+            return calls.answer(call, status, ctype, data)
+        raise AssertionError("unreachable")
 
     def request(
         self,
@@ -192,33 +207,9 @@ class Client:
         *,
         accept: tuple[int, ...] = (),
     ) -> Any:
-        """One call: the decoded JSON answer (None when empty); errors raise ApiError.
-
-        `accept` lists error statuses whose body is returned instead (e.g. 503 of /health).
-        """
-        payload = None if body is None else json.dumps(body).encode()
-        status, ctype, data = self._exchange(method, path, payload)
-        decoded: Any = None
-        if data and ctype.startswith("application/json"):
-            try:
-                decoded = json.loads(data)
-            except ValueError:
-                raise ApiError(status, f"sdfrd sent invalid JSON for {method} {path}") from None
-        elif data:
-            decoded = data.decode("utf-8", errors="replace")
-        if status >= 400 and status not in accept:
-            if isinstance(decoded, dict) and isinstance(decoded.get("error"), str):
-                field = decoded.get("field")
-                raise ApiError(status, decoded["error"], field if isinstance(field, str) else None)
-            text = decoded.strip()[:200] if isinstance(decoded, str) else ""
-            raise ApiError(status, f"HTTP {status} {text}".strip())
-        return decoded
-
-    def _get(self, path: str, key: str) -> Any:
-        answer = self.request("GET", path)
-        if not isinstance(answer, dict) or key not in answer:
-            raise ApiError(0, f"unexpected answer from sdfrd for GET {path}: no {key!r}")
-        return answer[key]
+        """One call of any path: the decoded JSON answer (None when empty); errors raise
+        ApiError. `accept` lists error statuses whose body is returned instead."""
+        return self.call(Call(method, path, lambda answer: answer, body, accept))
 
     # -- the API -----------------------------------------------------------------------------
 
@@ -230,10 +221,11 @@ class Client:
         attributes: Mapping[str, AttrValue] | None = None,
         *,
         service_id: str | None = None,
+        ttl: float | None = None,
     ) -> str:
         """Publish a service of this robot; returns its id (see `publish_service`)."""
-        answer = self.publish_service(name, type, url, attributes, service_id=service_id)
-        return str(answer["id"])
+        answer = self.publish_service(name, type, url, attributes, service_id=service_id, ttl=ttl)
+        return answer["id"]
 
     def publish_service(
         self,
@@ -243,37 +235,54 @@ class Client:
         attributes: Mapping[str, AttrValue] | None = None,
         *,
         service_id: str | None = None,
-    ) -> JsonObject:
-        """Publish a service of this robot; the daemon's answer (id, service, version).
+        ttl: float | None = None,
+    ) -> Published:
+        """Publish a service of this robot; the daemon's answer (id, service, version, ttl,
+        expires).
 
         The id is chosen here (`service_id`, or a fresh one) and sent with the service, so the
         publish is idempotent: when the daemon cannot be reached or the answer is lost, it is
         sent again, and a daemon that stored it already answers 200 instead of storing it
-        twice.
+        twice. With `ttl` (seconds) it is a lease: renew it (`renew`), or let `lease` do it.
         """
-        body = service_body(name, type, url, attributes, service_id or new_service_id())
-        for delay in (*self.retry_delays, None):
-            try:
-                answer: JsonObject = self.request("POST", "/services", body)
-                return answer
-            except ApiError as exc:
-                if exc.status != 0 or delay is None:
-                    raise
-                time.sleep(delay)
-        raise AssertionError("unreachable")
+        return self.call(calls.publish(name, type, url, attributes, service_id, ttl))
 
     def unpublish(self, service_id: str) -> None:
-        self.request("DELETE", service_path(service_id))
+        self.call(calls.unpublish(service_id))
+
+    def service(self, service_id: str) -> Published:
+        """One of this robot's registrations, with its lease."""
+        return self.call(calls.service(service_id))
+
+    def renew(self, service_id: str, ttl: float | None = None) -> Renewed:
+        """Renew a lease: it runs its ttl (or `ttl`) from now again."""
+        return self.call(calls.renew(service_id, ttl))
+
+    def lease(
+        self,
+        name: str,
+        type: str,
+        url: str | None = None,
+        attributes: Mapping[str, AttrValue] | None = None,
+        *,
+        ttl: float,
+        service_id: str | None = None,
+    ) -> KeptLease:
+        """Publish a service with a lease and keep renewing it from a thread, until `close()`
+        (or the end of a `with` block) unpublishes it. If this program dies, the service is
+        withdrawn from the fleet `ttl` seconds later."""
+        sid = service_id or new_service_id()
+        body = service_body(name, type, url, attributes, sid, ttl)
+        self.call(calls.publish(name, type, url, attributes, sid, ttl))
+        return KeptLease(self._twin(), body, ttl)
 
     def services(self) -> list[JsonObject]:
-        """This robot's registrations."""
-        services: list[JsonObject] = self._get("/services", "services")
-        return services
+        """This robot's registrations (with their leases' ttl and end)."""
+        return self.call(calls.services())
 
     def neighbors(self, include_unreachable: bool = False) -> list[JsonObject]:
         """The robots reachable now (with `include_unreachable`, all of the history map)."""
-        found: list[JsonObject] = self._get(neighbors_path(include_unreachable), "neighbors")
-        return found
+        return self.call(calls.neighbors(include_unreachable))
 
     def search(
         self,
@@ -281,53 +290,152 @@ class Client:
         attrs: Mapping[str, AttrValue] | None = None,
         **more_attrs: AttrValue,
     ) -> list[JsonObject]:
-        """Reachable robots with a service of `type` whose attributes equal the given ones.
+        """Reachable robots with a service of `type` whose attributes match the given ones
+        (numbers by value, booleans as true/false, text exactly).
 
         Each robot lists only its matching services. Attributes as keywords
         (`search("camera", fps=30)`) or, for any key, as `attrs={"frame-rate": 30}`.
         """
-        found: list[JsonObject] = self._get(
-            search_path(type, {**(attrs or {}), **more_attrs}), "neighbors"
-        )
-        return found
+        return self.call(calls.search(type, {**(attrs or {}), **more_attrs}))
 
     def history(self) -> list[JsonObject]:
         """Every robot ever seen, reachable or not."""
-        robots: list[JsonObject] = self._get("/history", "robots")
-        return robots
+        return self.call(calls.history())
 
     def self_info(self) -> JsonObject:
-        info: JsonObject = self.request("GET", "/self")
-        return info
+        return self.call(calls.self_info())
 
-    def health(self) -> JsonObject:
+    def health(self) -> Health:
         """`status` is "ok", or "degraded" (HTTP 503) while the discovery layer is down."""
-        info: JsonObject = self.request("GET", "/health", accept=(503,))
-        return info
+        return self.call(calls.health())
 
     def metrics(self) -> str:
-        return str(self.request("GET", "/metrics"))
+        return self.call(calls.metrics())
+
+    def events(self, since: int | None = 0, kinds: Iterable[str] | None = None) -> EventsPage:
+        """The changes kept after `since` (0: all of them), at once; ask again from
+        `last_id`. `kinds`: only these (e.g. `["robot.appeared", "service"]`)."""
+        return self.call(calls.events(since, kinds))
+
+    def watch(
+        self,
+        kinds: Iterable[str] | None = None,
+        since: int | None = None,
+        *,
+        reconnect: bool = True,
+    ) -> Iterator[Change]:
+        """Changes as they happen (GET /events as Server-Sent Events), forever.
+
+        `since`: start after this event id (None: with the next change). When the daemon
+        restarts or the stream breaks, it connects again and resumes after the last change
+        seen (with `reconnect`; the first connection must work). A `resync` change means
+        some were lost: read the state again.
+        """
+        cursor = since
+        kinds = list(kinds or ())
+        first = True
+        delay = 0.2
+        while True:
+            conn = self._connection(STREAM_IDLE)
+            headers = dict(STREAM_HEADERS)
+            if cursor is not None:
+                headers["Last-Event-ID"] = str(cursor)
+            try:
+                conn.request("GET", calls.events_path(None, kinds), headers=headers)
+                resp = conn.getresponse()
+                if resp.status != 200:
+                    data = resp.read()
+                    calls.answer(
+                        calls.events(), resp.status, resp.getheader("Content-Type", ""), data
+                    )
+                first = False
+                parser = SseParser()
+                while raw := resp.readline():
+                    done = parser.feed(raw.decode("utf-8", errors="replace").rstrip("\r\n"))
+                    if done is not None:
+                        change = calls.change(done[1])
+                        cursor = change.id
+                        delay = 0.2
+                        yield change
+            except (OSError, http.client.HTTPException) as exc:
+                if first or not reconnect:
+                    raise self._unreachable(exc) from None
+            finally:
+                conn.close()
+            if not reconnect:
+                return
+            time.sleep(delay)
+            delay = min(5.0, delay * 2)
 
     # -- the fleet keyring (over the unix socket only) ---------------------------------------
 
     def keys(self) -> JsonObject:
         """The keyring: mode, the key that signs, and per key its id (never the key)."""
-        ring: JsonObject = self.request("GET", "/keys")
-        return ring
+        return self.call(calls.keys())
 
     def install_key(self, key: bytes) -> JsonObject:
         """Accept `key` from now on (and, for a robot that had no key, sign with it in mode
         accept); the answer has its `id`."""
-        ring: JsonObject = self.request("POST", "/keys", {"key": base64.b64encode(key).decode()})
-        return ring
+        return self.call(calls.install_key(base64.b64encode(key).decode()))
 
     def use_key(self, key_id: str) -> JsonObject:
-        ring: JsonObject = self.request("POST", f"/keys/{quote(key_id, safe='')}/use")
-        return ring
+        return self.call(calls.use_key(key_id))
 
     def remove_key(self, key_id: str) -> None:
-        self.request("DELETE", f"/keys/{quote(key_id, safe='')}")
+        self.call(calls.remove_key(key_id))
 
     def set_key_mode(self, mode: str) -> JsonObject:
-        ring: JsonObject = self.request("PUT", "/keys/mode", {"mode": mode})
-        return ring
+        return self.call(calls.set_key_mode(mode))
+
+
+class KeptLease:
+    """A registration with a lease, renewed from a thread each RENEW_EVERY of its ttl, and
+    published again (same id) if it ran out meanwhile (sdfrd was down longer than the ttl).
+    `close()` stops renewing and unpublishes it."""
+
+    def __init__(self, client: Client, body: JsonObject, ttl: float) -> None:
+        self.id: str = body["id"]
+        self.ttl = ttl
+        self._client = client
+        self._body = body
+        self._stop = threading.Event()
+        #: The last renewal's failure (None after a success).
+        self.error: ApiError | None = None
+        self.renewals = 0
+        self._thread = threading.Thread(target=self._run, name=f"sdfr-lease-{self.id}")
+        self._thread.daemon = True
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.ttl * RENEW_EVERY):
+            try:
+                try:
+                    self._client.call(calls.renew(self.id))
+                except ApiError as exc:
+                    if exc.status != 404:
+                        raise
+                    self._client.call(Call("POST", "/services", dict, self._body))
+                self.renewals += 1
+                self.error = None
+            except ApiError as exc:  # sdfrd restarting: the next period tries again
+                self.error = exc
+
+    def close(self) -> None:
+        """Stop renewing and unpublish (quietly if it is gone already)."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join()
+        try:
+            self._client.call(calls.unpublish(self.id))
+        except ApiError as exc:
+            if exc.status != 404:
+                raise
+        finally:
+            self._client.close()
+
+    def __enter__(self) -> KeptLease:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import ipaddress
 import os
 import re
-import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from sdfr import wire
+from sdfr import version_text, wire
+from sdfr._compat import tomllib
 from sdfr.errors import ConfigError
 from sdfr.model import ROBOT_ID_RE
 from sdfr.protocol import (
@@ -66,6 +68,7 @@ class Config:
     ssdp_interop: str = "auto"
     api_allowed_hosts: tuple[str, ...] = ()
     api_allowed_origins: tuple[str, ...] = ()
+    indicator_thresholds: tuple[float, ...] = (0.5, 0.8)
 
     @property
     def ssdp_interop_wanted(self) -> bool | None:
@@ -138,6 +141,12 @@ class Config:
             )
         if self.ssdp_interop not in ("auto", "on", "off"):
             raise ConfigError(f"ssdp_interop: must be auto, on or off, got {self.ssdp_interop!r}")
+        for threshold in self.indicator_thresholds:
+            if not 0 < threshold <= 1:
+                raise ConfigError(
+                    f"indicator_thresholds: each must be above 0 and at most 1 (a share of "
+                    f"pings answered), got {threshold}"
+                )
         for host in self.api_allowed_hosts:
             if not re.fullmatch(r"[A-Za-z0-9.:\[\]_-]{1,253}", host):
                 raise ConfigError(f"api_allowed_hosts: {host!r} is not a host name or address")
@@ -264,15 +273,15 @@ _HELP: dict[str, str] = {
     "ad-hoc WiFi (wpa_supplicant + iw) before starting; off: never touch the radio "
     "(default auto)",
     "wifi_secret": "the fleet's WiFi secret (8 characters or more), the same on every robot; "
-    "prefer wifi_secret_file: a flag is visible in the process list",
+    "prefer wifi_secret_file: a flag is visible in the process list (default: none)",
     "wifi_secret_file": "file holding the fleet's WiFi secret (make it readable by root only: "
-    "chmod 600; a world-readable file is used with a warning)",
+    "chmod 600; a world-readable file is used with a warning) (default: none)",
     "wifi_mode": "ibss (IEEE 802.11 ad-hoc, WPA2-PSK) or mesh (802.11s, SAE) (default ibss)",
     "wifi_freq": "WiFi channel centre frequency in MHz, 2.4 or 5 GHz (default 2412, channel 1)",
     "wifi_country": "regulatory domain, ISO 3166-1 code such as DE (default: leave the system's)",
     "key_file": "file holding the fleet key (`sdfr keys generate FILE`; readable by root only): "
     "every datagram is then signed and checked. It seeds the keyring in STATE_DIR on the "
-    "first start; `sdfr keys` manages the keyring after that. Without a key the fleet is open",
+    "first start; `sdfr keys` manages the keyring after that (default: none, the fleet is open)",
     "auth": "with a key: accept (send unsigned, accept both), sign (send signed, accept both) or "
     "enforce (send signed, accept signed only) -- the steps of moving a fleet to a key without "
     "a flag day (default: the keyring's mode; enforce for a new keyring)",
@@ -280,7 +289,10 @@ _HELP: dict[str, str] = {
     "the fleet has no key), on or off (default auto)",
     "api_allowed_hosts": "more names the local API may be reached by (the Host header), comma "
     "separated; 127.0.0.1, localhost, ::1 and the --api host always are. Anything else is "
-    "refused: a web page cannot reach the API through a name it controls (DNS rebinding)",
+    "refused: a web page cannot reach the API through a name it controls (DNS rebinding) "
+    "(default: none more)",
+    "indicator_thresholds": "connection indicator levels (0-1, comma separated) whose crossing "
+    "is a robot.indicator event of GET /events (default 0.5,0.8)",
     "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
     "http://dashboard.local:8080), comma separated; default none: a request a browser sends "
     "for another site's page is refused",
@@ -309,6 +321,16 @@ def _coerce(name: str, raw: Any) -> Any:
     }
     if name in ("state_dir", "wifi_secret_file", "key_file"):
         return Path(str(raw))
+    if name == "indicator_thresholds":
+        items = raw.split(",") if isinstance(raw, str) else raw
+        if not isinstance(items, list | tuple):
+            raise ConfigError(f"{name}: expected a list of numbers, got {raw!r}")
+        try:
+            if any(isinstance(i, bool) for i in items):
+                raise TypeError
+            return tuple(float(i) for i in items if str(i).strip())
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: expected a list of numbers, got {raw!r}") from None
     if name in _LISTS:
         items = raw.split(",") if isinstance(raw, str) else raw
         if not isinstance(items, list | tuple) or not all(isinstance(i, str) for i in items):
@@ -334,19 +356,47 @@ def load_toml(path: Path) -> dict[str, object]:
         raise ConfigError(f"config: {path} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config: {path} is not valid TOML: {exc}") from None
-    table = data.get("sdfrd", data)
-    if not isinstance(table, dict):
-        raise ConfigError(f"config: [sdfrd] in {path} must be a table")
     names = {f.name for f in fields(Config)}
+    if "sdfrd" in data:
+        table = data["sdfrd"]
+        if not isinstance(table, dict):
+            raise ConfigError(f"config: [sdfrd] in {path} must be a table")
+        for key, value in data.items():
+            if key == "sdfrd":
+                continue
+            if isinstance(value, dict):
+                raise ConfigError(
+                    f"config: unknown section [{key}] in {path}{_hint(key, ['sdfrd'])}; "
+                    "sdfrd reads [sdfrd] only"
+                )
+            raise ConfigError(
+                f"config: {key!r} is at the top level of {path}, which has an [sdfrd] table: "
+                f"with one, sdfrd reads only [sdfrd]; move {key!r} into it"
+            )
+    else:
+        table = data
     out: dict[str, Any] = {}
     for key, raw in table.items():
         name = key.replace("-", "_")
+        if name not in names and isinstance(raw, dict):
+            hint = _hint(key, ["sdfrd"]).replace("'sdfrd'", "[sdfrd]")
+            raise ConfigError(
+                f"config: unknown section [{key}] in {path}{hint}; sdfrd reads [sdfrd] (or "
+                "keys at the top level)"
+            )
         if name not in names:
             raise ConfigError(
-                f"config: unknown key {key!r} in {path}; known: {', '.join(sorted(names))}"
+                f"config: unknown key {key!r} in {path}{_hint(name, names)}; "
+                f"known keys: {', '.join(sorted(names))}"
             )
         out[name] = _coerce(name, raw)
     return out
+
+
+def _hint(word: str, choices: Iterable[str]) -> str:
+    """(did you mean 'x'?) for the closest of `choices`, or nothing."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -357,7 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Every option is also a key of the TOML file given with --config (top level or "
         "under [sdfrd], same names with - or _); flags override the file.",
     )
-    p.add_argument("--config", type=Path, metavar="FILE", help="TOML config file")
+    p.add_argument("--config", type=Path, metavar="FILE", help="TOML config file (default: none)")
+    p.add_argument("--version", action="version", version=version_text("sdfrd"))
     for f in fields(Config):
         flag = "--" + f.name.replace("_", "-")
         meta = f.name.upper()
@@ -392,7 +443,7 @@ def to_args(cfg: Config) -> list[str]:
         value = getattr(cfg, f.name)
         if isinstance(value, tuple):
             if value:
-                out += ["--" + f.name.replace("_", "-"), ",".join(value)]
+                out += ["--" + f.name.replace("_", "-"), ",".join(str(v) for v in value)]
         elif value is not None:
             out += ["--" + f.name.replace("_", "-"), str(value)]
     return out

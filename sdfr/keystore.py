@@ -22,7 +22,7 @@ import stat
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 from sdfr.auth import KEY_BYTES, MODES, OPEN, Keyring, Mode, key_id
@@ -111,7 +111,7 @@ def generate_key_file(path: Path, *, force: bool = False) -> str:
     unless `force`."""
     key = secrets.token_bytes(KEY_BYTES)
     kid = key_id(key)
-    stamp = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     body = f"# SDfR fleet key {kid}, generated {stamp}\n{key_text(key)}\n".encode()
     if not force and (path.exists() or path.is_symlink()):
         raise ConfigError(f"{path} exists already; not overwriting a key (use --force)")

@@ -39,8 +39,23 @@ def _whole(regex: re.Pattern[str]) -> str:
     return regex.pattern.removesuffix("$") + r"(?![\s\S])"
 
 
+#: Control characters (C0, DEL, C1) and the Unicode line and paragraph separators: refused in
+#: every text a user gives (names, URLs, attribute keys and values), since they forge log lines
+#: and break tables.
+CONTROL_CHARS = "\\x00-\\x1f\\x7f-\\x9f\\u2028\\u2029"
+CONTROL_RE = re.compile(f"[{CONTROL_CHARS}]")
+#: Text without control characters (the pattern matches whole strings, see `_whole`).
+_PRINTABLE = f"^[^{CONTROL_CHARS}]*(?![\\s\\S])"
+
 ServiceId = Annotated[str, Meta(pattern=_whole(SERVICE_ID_RE))]
-ServiceName = Annotated[str, Meta(min_length=1, max_length=MAX_NAME, pattern=r"\S")]
+ServiceName = Annotated[
+    str,
+    Meta(
+        min_length=1,
+        max_length=MAX_NAME,
+        pattern=f"^[^{CONTROL_CHARS}]*[^{CONTROL_CHARS}\\s][^{CONTROL_CHARS}]*(?![\\s\\S])",
+    ),
+]
 ServiceType = Annotated[
     str,
     Meta(
@@ -48,17 +63,18 @@ ServiceType = Annotated[
         description="What the service is, e.g. `camera/rgb`; searched by equality.",
     ),
 ]
-ServiceUrl = Annotated[str, Meta(max_length=MAX_URL)]
-AttrKey = Annotated[str, Meta(min_length=1, max_length=MAX_ATTR_KEY)]
+ServiceUrl = Annotated[str, Meta(max_length=MAX_URL, pattern=_PRINTABLE)]
+AttrKey = Annotated[str, Meta(min_length=1, max_length=MAX_ATTR_KEY, pattern=_PRINTABLE)]
 #: A number with a JSON form (not NaN, not infinite).
 AttrNumber = Annotated[float, Meta(ge=-sys.float_info.max, le=sys.float_info.max)]
-AttrJson = Annotated[str, Meta(max_length=MAX_ATTR_VALUE)] | int | AttrNumber | bool
+AttrText = Annotated[str, Meta(max_length=MAX_ATTR_VALUE, pattern=_PRINTABLE)]
+AttrJson = AttrText | int | AttrNumber | bool
 Attributes = Annotated[
     dict[AttrKey, AttrJson],
     Meta(
         max_length=MAX_ATTRS,
-        description="Capabilities, searched with `attr.KEY=VALUE` (booleans as "
-        "`true`/`false`, numbers in their JSON text).",
+        description="Capabilities, searched with `attr.KEY=VALUE`: a number matches by "
+        "value (`30` finds 30 and 30.0), a boolean by `true`/`false`, text by equality.",
     ),
 ]
 
@@ -96,10 +112,10 @@ class ServiceOutput(msgspec.Struct, forbid_unknown_fields=True):
 #: What a field must be, said when it is not.
 _RULES = {
     "id": "must be 1-64 characters of A-Z a-z 0-9 . _ -",
-    "name": f"is required: 1-{MAX_NAME} characters, not all blank",
+    "name": f"is required: 1-{MAX_NAME} characters, not all blank, no control characters",
     "type": "is required: 1-128 characters of A-Z a-z 0-9 . _ : / -, starting with a letter "
     "or digit",
-    "url": f"must be a string of at most {MAX_URL} characters",
+    "url": f"must be a string of at most {MAX_URL} characters, without control characters",
     "attributes": f"must be a JSON object of at most {MAX_ATTRS} attributes",
 }
 
@@ -123,14 +139,17 @@ def _invalid(exc: msgspec.ValidationError, obj: object) -> ValidationError:
             try:
                 msgspec.convert(key, AttrKey)
             except msgspec.ValidationError:
-                return ValidationError(where, f"keys must be 1-{MAX_ATTR_KEY} characters")
+                return ValidationError(
+                    where, f"keys must be 1-{MAX_ATTR_KEY} characters, without control characters"
+                )
             try:
                 msgspec.convert(value, AttrJson, strict=True)
             except msgspec.ValidationError:
                 return ValidationError(
                     where,
-                    f"values must be strings (at most {MAX_ATTR_VALUE} characters), numbers "
-                    "or booleans; NaN and infinite numbers are not values",
+                    f"values must be strings (at most {MAX_ATTR_VALUE} characters, without "
+                    "control characters), numbers or booleans; NaN and infinite numbers are "
+                    "not values",
                 )
     return ValidationError(field, _RULES.get(field, text.split(" - at ")[0]))
 
@@ -174,15 +193,38 @@ class Service:
         )
 
     def matches(self, stype: str | None, attrs: Mapping[str, str]) -> bool:
-        """True when the type matches and each attribute equals the given text."""
+        """True when the type matches and each attribute matches the given text (see
+        `attr_matches`)."""
         if stype is not None and self.type != stype:
             return False
         for key, want in attrs.items():
             if key not in self.attributes:
                 return False
-            if attr_text(self.attributes[key]) != want:
+            if not attr_matches(self.attributes[key], want):
                 return False
         return True
+
+
+def attr_matches(value: AttrValue, text: str) -> bool:
+    """Whether an attribute's value matches a search's text, the query string's `VALUE`:
+
+    - a boolean matches `true` or `false` (any case), and nothing else (not `1`);
+    - a number matches a text that reads as the same number (`30`, `30.0`, `3e1` all find
+      30 and 30.0); `NaN` and infinities match nothing;
+    - a string matches the same text exactly (`"30"` is found by `30`, `"True"` by `True`).
+    """
+    if isinstance(value, bool):
+        return text.lower() == ("true" if value else "false")
+    if isinstance(value, int | float):
+        if text != text.strip():
+            return False
+        try:
+            if isinstance(value, int) and re.fullmatch(r"[+-]?[0-9]+", text):
+                return int(text) == value  # exact, also past float's 53 bits
+            return float(text) == value
+        except ValueError:
+            return False
+    return value == text
 
 
 def attr_text(value: AttrValue) -> str:
@@ -228,6 +270,9 @@ class PeerRecord:
     rtt_ms: float | None
     pings: int
     services: tuple[Service, ...] = field(default=())
+    #: It said Byebye for its current boot (not kept in the store: only the discovery layer's
+    #: changes feed, which tells "left" from "unreachable", needs it).
+    departed: bool = False
 
     def shifted(self, offset: float) -> PeerRecord:
         """The same record with its times moved by `offset` seconds (core clock <-> epoch)."""

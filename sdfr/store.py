@@ -8,6 +8,17 @@ the API layer's writer calls `sync()` after committing registrations and before
 answering, so an acknowledged registration is on disk and survives a power cut
 (the fsync runs in a worker thread, so the event loop never waits on the disk).
 The history map, rebuilt from the air in seconds, is not synced.
+
+Leases: a registration may carry a ttl; its row keeps the ttl and the Unix time it expires
+(`expires`), so a lease outlives a restart of the daemon and one that ran out while the daemon
+was down is withdrawn when it starts (`expire_overdue`).
+
+The event log (`events`): both layers append the changes they make, in the transaction that
+makes them, for `GET /events`. An event's id is one more than the last one's, or the time in
+microseconds when that is larger: ids grow across restarts, and also past events a power cut
+lost (which were never fsynced) as long as the clock goes forward. The log keeps the last
+EVENT_LOG_MAX events; `meta.events_pruned` is the largest id dropped, so a reader asking for
+events after an older id learns that some are gone.
 """
 
 from __future__ import annotations
@@ -18,15 +29,20 @@ import json
 import os
 import sqlite3
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sdfr import events as event_log
 from sdfr.errors import SdfrError
+from sdfr.events import Event
 from sdfr.model import PeerRecord, Service
 from sdfr.wire import MAX_BOOT_ID
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Events the log keeps (each is at most a few KiB: see sdfr.events.MAX_SERVICES_JSON).
+EVENT_LOG_MAX = 4096
 #: The API layer's datagram socket in the state dir, to which the discovery layer sends its
 #: status every second: a heartbeat that needs no disk, so a full state directory is not
 #: mistaken for a dead discovery layer.
@@ -39,6 +55,13 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS local_services (
     id TEXT PRIMARY KEY,
     seq INTEGER NOT NULL,
+    body TEXT NOT NULL,
+    ttl REAL,
+    expires REAL
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY,
+    kind TEXT NOT NULL,
     body TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS local_services_seq ON local_services(seq);
@@ -93,8 +116,60 @@ def write_error(where: Path, exc: BaseException) -> StateWriteError:
     return StateWriteError(reason, f"cannot write the state directory {where}: {exc}")
 
 
-#: A write of local registrations: ("add", Service) or ("remove", service id).
-Op = tuple[str, "Service | str"]
+@dataclass(frozen=True, slots=True)
+class Add:
+    """Register a service; with a ttl (seconds), as a lease that ends at `now + ttl`."""
+
+    service: Service
+    ttl: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Remove:
+    """Unpublish a service."""
+
+    service_id: str
+
+
+@dataclass(frozen=True, slots=True)
+class Renew:
+    """Extend a lease to `now + ttl` (its own ttl when None); with `set_ttl`, make `ttl` the
+    lease's ttl (None: no lease any more)."""
+
+    service_id: str
+    ttl: float | None = None
+    set_ttl: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Expire:
+    """Withdraw a service whose lease ran out, unless it was renewed since: `expires` is
+    the end its owner last set."""
+
+    service_id: str
+    expires: float
+
+
+#: A write of local registrations.
+Op = Add | Remove | Renew | Expire
+
+
+@dataclass(frozen=True, slots=True)
+class Lease:
+    """A registration's lease: its ttl and when it ends (Unix time)."""
+
+    service_id: str
+    ttl: float
+    expires: float
+
+
+@dataclass(frozen=True, slots=True)
+class StoredEvent:
+    """A row of the event log: its id, kind and the JSON `GET /events` sends."""
+
+    id: int
+    kind: str
+    body: str
 
 
 def _service_from_row(body: str) -> Service:
@@ -124,13 +199,11 @@ class Store:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
+            self._migrate()
         except sqlite3.DatabaseError as exc:
             raise StoreError(
                 f"state_dir: {self.path} is not a usable SDfR database: {exc}"
             ) from None
-        self._db.execute(
-            "INSERT OR IGNORE INTO meta(key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),)
-        )
         self.status_path = state_dir / "discovery-status.json"
         self.wal_path = self.path.with_name(self.path.name + "-wal")
         self._dir_synced = False
@@ -141,6 +214,19 @@ class Store:
 
     def close(self) -> None:
         self._db.close()
+
+    def _migrate(self) -> None:
+        """Bring a state directory of an earlier version up to this one (nothing is lost)."""
+        columns = {r[1] for r in self._db.execute("PRAGMA table_info(local_services)")}
+        for name in ("ttl", "expires"):
+            if name not in columns:  # schema 1: registrations had no lease
+                self._db.execute(f"ALTER TABLE local_services ADD COLUMN {name} REAL")
+        self._db.execute(
+            "INSERT INTO meta(key, value) VALUES ('schema', ?) "
+            "ON CONFLICT(key) DO UPDATE SET value = excluded.value "
+            "WHERE CAST(value AS INTEGER) < CAST(excluded.value AS INTEGER)",
+            (str(SCHEMA_VERSION),),
+        )
 
     # -- meta ------------------------------------------------------------------------------
 
@@ -210,39 +296,98 @@ class Store:
         ).fetchone()
         return None if row is None else _service_from_row(row[0])
 
-    def apply(self, ops: list[Op]) -> list[int | StoreError | None]:
-        """Several registration changes in one transaction (one fsync when durable): per
-        operation the new local version, None (removing what is not there) or the error
-        (adding an id that exists). A failed write raises StateWriteError for all."""
+    def apply(self, ops: Sequence[Op], now: float | None = None) -> list[int | StoreError | None]:
+        """Several registration changes in one transaction (one fsync when durable), each with
+        its event: per operation the new local version (Renew: 0), None (removing, renewing or
+        expiring what is not there, or was renewed since) or the error (adding an id that
+        exists). A failed write raises StateWriteError for all. `now`: Unix time."""
+        now = time.time() if now is None else now
         out: list[int | StoreError | None] = []
+        events: list[Event] = []
         with self._writing(), self._tx():
-            for kind, arg in ops:
-                if kind == "add":
-                    assert isinstance(arg, Service)
-                    out.append(self._insert(arg))
+            for op in ops:
+                if isinstance(op, Add):
+                    out.append(self._insert(op.service, op.ttl, now, events))
+                elif isinstance(op, Remove):
+                    out.append(self._delete(op.service_id, None, events))
+                elif isinstance(op, Expire):
+                    out.append(self._delete(op.service_id, op.expires, events))
                 else:
-                    assert isinstance(arg, str)
-                    out.append(self._delete(arg))
+                    out.append(self._renew(op, now, events))
+            self._append(events, now)
         return out
 
-    def _insert(self, service: Service) -> int | StoreError:
+    def _insert(
+        self, service: Service, ttl: float | None, now: float, events: list[Event]
+    ) -> int | StoreError:
         seq = self._db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM local_services").fetchone()[0]
+        expires = None if ttl is None else now + ttl
         try:
             self._db.execute(
-                "INSERT INTO local_services(id, seq, body) VALUES (?, ?, ?)",
-                (service.id, seq, _dumps(service.to_json())),
+                "INSERT INTO local_services(id, seq, body, ttl, expires) VALUES (?, ?, ?, ?, ?)",
+                (service.id, seq, _dumps(service.to_json()), ttl, expires),
             )
         except sqlite3.IntegrityError:
             return StoreError(f"service id {service.id!r} exists already")
+        events.append(event_log.published(service, ttl, expires))
         return self._bump_version()
 
-    def _delete(self, service_id: str) -> int | None:
-        cur = self._db.execute("DELETE FROM local_services WHERE id = ?", (service_id,))
-        return None if cur.rowcount == 0 else self._bump_version()
+    def _delete(self, service_id: str, expires: float | None, events: list[Event]) -> int | None:
+        row = self._db.execute(
+            "SELECT body, expires FROM local_services WHERE id = ?", (service_id,)
+        ).fetchone()
+        if row is None or (expires is not None and row[1] != expires):
+            return None  # not there; or an expiry of a lease renewed since
+        self._db.execute("DELETE FROM local_services WHERE id = ?", (service_id,))
+        if expires is None:
+            events.append(event_log.unpublished(service_id))
+        else:
+            events.append(event_log.expired(_service_from_row(row[0])))
+        return self._bump_version()
 
-    def add_service(self, service: Service) -> int:
+    def _renew(self, op: Renew, now: float, events: list[Event]) -> int | None:
+        row = self._db.execute(
+            "SELECT body, ttl FROM local_services WHERE id = ?", (op.service_id,)
+        ).fetchone()
+        if row is None:
+            return None
+        ttl = op.ttl if op.set_ttl or op.ttl is not None else row[1]
+        if ttl is None and not op.set_ttl:
+            return None  # no lease to renew
+        expires = None if ttl is None else now + ttl
+        self._db.execute(
+            "UPDATE local_services SET ttl = ?, expires = ? WHERE id = ?",
+            (ttl, expires, op.service_id),
+        )
+        if op.set_ttl and ttl != row[1]:  # a publish again under another lease: say so
+            events.append(event_log.published(_service_from_row(row[0]), ttl, expires))
+        return 0
+
+    def lease(self, service_id: str) -> Lease | None:
+        """The lease of a registration, None if it has none (or does not exist)."""
+        row = self._db.execute(
+            "SELECT ttl, expires FROM local_services WHERE id = ? AND expires IS NOT NULL",
+            (service_id,),
+        ).fetchone()
+        return None if row is None else Lease(service_id, float(row[0]), float(row[1]))
+
+    def leases(self) -> list[Lease]:
+        """Every lease, soonest to end first."""
+        rows = self._db.execute(
+            "SELECT id, ttl, expires FROM local_services WHERE expires IS NOT NULL ORDER BY expires"
+        ).fetchall()
+        return [Lease(r[0], float(r[1]), float(r[2])) for r in rows]
+
+    def expire_overdue(self, now: float) -> list[str]:
+        """Withdraw every registration whose lease ended before `now` (Unix time), e.g. while
+        the daemon was down; the ids withdrawn."""
+        overdue = [lease for lease in self.leases() if lease.expires <= now]
+        results = self.apply([Expire(x.service_id, x.expires) for x in overdue], now)
+        return [x.service_id for x, r in zip(overdue, results, strict=True) if r is not None]
+
+    def add_service(self, service: Service, ttl: float | None = None) -> int:
         """Store a registration; returns the new local version."""
-        result = self.apply([("add", service)])[0]
+        result = self.apply([Add(service, ttl)])[0]
         if isinstance(result, StoreError):
             raise result
         assert result is not None
@@ -250,7 +395,7 @@ class Store:
 
     def remove_service(self, service_id: str) -> int | None:
         """Remove a registration; returns the new local version, None if there was none."""
-        result = self.apply([("remove", service_id)])[0]
+        result = self.apply([Remove(service_id)])[0]
         assert not isinstance(result, StoreError)
         return result
 
@@ -261,7 +406,20 @@ class Store:
 
     # -- history map (owner: discovery layer) ----------------------------------------------
 
-    def save_peers(self, records: Iterable[PeerRecord]) -> None:
+    def save_peers(
+        self, records: Iterable[PeerRecord], events: Sequence[Event] = (), now: float | None = None
+    ) -> None:
+        """Save history map records, and the events they make, in one transaction."""
+        self.save_history((), records, events, now)
+
+    def save_history(
+        self,
+        removed: Iterable[str],
+        records: Iterable[PeerRecord],
+        events: Sequence[Event] = (),
+        now: float | None = None,
+    ) -> None:
+        """Forget the robots `removed`, save `records`, append `events`: one transaction."""
         rows = [
             (
                 r.robot_id,
@@ -280,15 +438,18 @@ class Store:
             )
             for r in records
         ]
-        if not rows:
+        ids = [(r,) for r in removed]
+        if not rows and not ids and not events:
             return
         with self._writing(), self._tx():
+            self._db.executemany("DELETE FROM peers WHERE robot_id = ?", ids)
             self._db.executemany(
                 "INSERT OR REPLACE INTO peers(robot_id, address, location, boot_id, version, "
                 "digest, reachable, first_seen, last_seen, indicator, rtt_ms, pings, services) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 rows,
             )
+            self._append(events, time.time() if now is None else now)
 
     def load_peers(self) -> list[PeerRecord]:
         rows = self._db.execute(
@@ -323,16 +484,50 @@ class Store:
         self._parsed = parsed
         return out
 
-    def delete_peers(self, robot_ids: Iterable[str]) -> None:
+    def delete_peers(self, robot_ids: Iterable[str], events: Sequence[Event] = ()) -> None:
         """Forget robots (the history map was full)."""
-        ids = [(r,) for r in robot_ids]
-        if ids:
-            with self._writing(), self._tx():
-                self._db.executemany("DELETE FROM peers WHERE robot_id = ?", ids)
+        self.save_history(robot_ids, (), events)
 
-    def mark_all_unreachable(self) -> None:
-        """At discovery start nothing is known to be reachable yet."""
-        self._db.execute("UPDATE peers SET reachable = 0 WHERE reachable != 0")
+    def mark_all_unreachable(self, events: Sequence[Event] = ()) -> None:
+        """At discovery start nothing is known to be reachable yet (`events` tell it)."""
+        with self._writing(), self._tx():
+            self._db.execute("UPDATE peers SET reachable = 0 WHERE reachable != 0")
+            self._append(events, time.time())
+
+    # -- the event log (both layers append; the API layer reads) ---------------------------
+
+    def _append(self, events: Sequence[Event], now: float) -> None:
+        """Append to the log inside the caller's transaction; drop what is past EVENT_LOG_MAX."""
+        if not events:
+            return
+        last = self.last_event_id()
+        rows = []
+        for event in events:
+            last = max(last + 1, int(now * 1_000_000))
+            rows.append((last, event.kind, event.body(last, now)))
+        self._db.executemany("INSERT INTO events(id, kind, body) VALUES (?, ?, ?)", rows)
+        edge = self._db.execute(
+            "SELECT id FROM events ORDER BY id DESC LIMIT 1 OFFSET ?", (EVENT_LOG_MAX,)
+        ).fetchone()
+        if edge is not None:
+            self._db.execute("DELETE FROM events WHERE id <= ?", (edge[0],))
+            self.set_meta("events_pruned", str(edge[0]))
+
+    def last_event_id(self) -> int:
+        """The id of the newest event (0 when there is none)."""
+        row = self._db.execute("SELECT MAX(id) FROM events").fetchone()
+        return 0 if row[0] is None else int(row[0])
+
+    def events_pruned(self) -> int:
+        """The largest id dropped from the log (0: nothing was ever dropped)."""
+        return int(self.get_meta("events_pruned") or "0")
+
+    def events_after(self, after: int, limit: int = 256) -> list[StoredEvent]:
+        """Events with an id above `after`, oldest first, at most `limit`."""
+        rows = self._db.execute(
+            "SELECT id, kind, body FROM events WHERE id > ? ORDER BY id LIMIT ?", (after, limit)
+        ).fetchall()
+        return [StoredEvent(int(r[0]), str(r[1]), str(r[2])) for r in rows]
 
     # -- discovery status (owner: discovery layer) -----------------------------------------
 

@@ -8,7 +8,6 @@ Each field's value is read by its type (`BY_TYPE`) or by the converter its metad
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping
 from dataclasses import MISSING, Field, fields
 from pathlib import Path
@@ -35,6 +34,7 @@ from netlab.scenario.spec import (
     to_true,
 )
 from netlab.scenario.steps import STEPS, Check, Step
+from sdfr._compat import tomllib  # (tomllib is 3.11+; SDfR runs on 3.10 too)
 
 BUNDLED_DIR = Path(__file__).parent.parent / "scenarios"
 TOP_LEVEL = ("scenario", "groups", "positions", "kinds", "sdfrd", "step")

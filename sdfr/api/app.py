@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+
 from aiohttp import web
 
 from sdfr.api.doors import allowed_hosts, doors
+from sdfr.api.events import EventHub, events
 from sdfr.api.handlers import (
+    get_service,
     health,
     history,
+    hold,
     keys_install,
     keys_list,
     keys_mode,
@@ -16,33 +21,60 @@ from sdfr.api.handlers import (
     list_services,
     neighbors,
     publish,
+    renew,
     search,
     self_info,
     unpublish,
 )
+from sdfr.api.leases import Leases
 from sdfr.api.metrics import metrics
 from sdfr.api.openapi import openapi_document
 from sdfr.api.replies import MAX_BODY, Handler, json_bytes, json_response
 from sdfr.api.server import errors_as_json
-from sdfr.api.state import STATE, ApiState, StoreView, Writer, measure
+from sdfr.api.state import STATE, ApiState, StoreView, Writer, measure, notify_discovery
 from sdfr.config import Config
-from sdfr.store import (
-    Store,
-)
+from sdfr.store import Store
 
 
 def create_app(cfg: Config, store: Store) -> web.Application:
     """The local REST API."""
     app = web.Application(middlewares=[measure, errors_as_json, doors], client_max_size=MAX_BODY)
-    writer = Writer(cfg.state_dir)
-    app[STATE] = ApiState(
-        cfg=cfg, view=StoreView(store, cfg), writer=writer, hosts=allowed_hosts(cfg)
-    )
+    hub = EventHub(store)
+    writer = Writer(cfg.state_dir, committed=hub.wake)
+    view = StoreView(store, cfg)
 
-    async def close_writer(app: web.Application) -> None:
+    def withdrawn(ids: list[str]) -> None:
+        view.leases_changed()
+        notify_discovery(cfg.state_dir)
+
+    leases = Leases(writer, withdrawn)
+    app[STATE] = ApiState(
+        cfg=cfg,
+        view=view,
+        writer=writer,
+        hosts=allowed_hosts(cfg),
+        hub=hub,
+        leases=leases,
+    )
+    poller: list[asyncio.Task[None]] = []
+
+    async def start(app: web.Application) -> None:
+        # Leases that ran out while this layer was down end now; the others are timed.
+        leases.load(store.leases())
+        poller.append(asyncio.get_running_loop().create_task(hub.poll()))
+
+    async def stop_streams(app: web.Application) -> None:
+        hub.close()  # event streams and holds end, so a stop does not wait for them
+
+    async def close(app: web.Application) -> None:
+        leases.close()
+        for task in poller:
+            task.cancel()
         writer.close()
 
-    app.on_cleanup.append(close_writer)
+    app.on_startup.append(start)
+    app.on_shutdown.append(stop_streams)
+    app.on_cleanup.append(close)
     openapi_body = json_bytes(openapi_document())
 
     async def openapi(request: web.Request) -> web.Response:
@@ -52,6 +84,10 @@ def create_app(cfg: Config, store: Store) -> web.Application:
         ("GET", "/services", list_services),
         ("POST", "/services", publish),
         ("DELETE", "/services/{id}", unpublish),
+        ("GET", "/services/{id}", get_service),
+        ("POST", "/services/{id}/renew", renew),
+        ("POST", "/services/{id}/hold", hold),
+        ("GET", "/events", events),
         ("GET", "/neighbors", neighbors),
         ("GET", "/neighbors/search", search),
         ("GET", "/history", history),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import secrets
 import time
@@ -12,6 +14,7 @@ from aiohttp import web
 
 from sdfr import __version__, auth, keystore, wire
 from sdfr.api.doors import over_unix_socket
+from sdfr.api.leases import TTL_MAX, TTL_MIN
 from sdfr.api.replies import RequestError, cannot_write_status, json_response, read_json
 from sdfr.api.state import (
     FAILING_AFTER,
@@ -25,9 +28,7 @@ from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringFileError, StoredKeyring
 from sdfr.model import PeerRecord, Service
 from sdfr.status import DiscoveryStatus
-from sdfr.store import (
-    write_reason,
-)
+from sdfr.store import Add, Lease, Remove, Renew, write_reason
 from sdfr.wire import check_service_fits
 
 log = logging.getLogger("sdfr.api")
@@ -36,17 +37,42 @@ log = logging.getLogger("sdfr.api")
 # -- handlers: local registrations -------------------------------------------------------------
 
 
-def _published(service: Service, version: int, status: int) -> web.Response:
+def _published(service: Service, version: int, status: int, lease: Lease | None) -> web.Response:
     return json_response(
-        {"id": service.id, "service": service.to_json(), "version": version},
+        {
+            "id": service.id,
+            "service": service.to_json(),
+            "version": version,
+            "ttl": None if lease is None else lease.ttl,
+            "expires": None if lease is None else lease.expires,
+        },
         status=status,
         headers={"Location": f"/services/{service.id}"},
     )
 
 
-def _published_already(state: ApiState, service: Service) -> web.Response | None:
+def _ttl(obj: object) -> float | None:
+    """The `ttl` of a request body (taken out of it), None when it has none."""
+    if not isinstance(obj, dict) or "ttl" not in obj:
+        return None
+    ttl = obj.pop("ttl")
+    if ttl is None:
+        return None
+    if isinstance(ttl, bool) or not isinstance(ttl, int | float) or not TTL_MIN <= ttl <= TTL_MAX:
+        raise ValidationError(
+            "ttl",
+            f"must be a number of seconds from {TTL_MIN:g} to {TTL_MAX:.0f} (a lease its owner "
+            "renews), or null for none",
+        )
+    return float(ttl)
+
+
+async def _published_already(
+    state: ApiState, service: Service, ttl: float | None
+) -> web.Response | None:
     """A publish under a chosen id that is stored already: the same service again (a client
-    retrying after a lost answer) gets 200 and nothing changes; another one, 409."""
+    retrying after a lost answer, or publishing again after its lease ran out) gets 200 and
+    its lease is set to `ttl` (renewed); another one, 409."""
     stored = state.store.get_service(service.id)
     if stored is None:
         return None
@@ -57,19 +83,24 @@ def _published_already(state: ApiState, service: Service) -> web.Response | None
             "leave id out and the robot picks one",
             "id",
         )
-    return _published(stored, state.store.local_version(), 200)
+    await state.writer.write(Renew(service.id, ttl, set_ttl=True))
+    lease = state.store.lease(service.id)
+    state.leases.set(lease, service.id)
+    state.view.leases_changed()
+    return _published(stored, state.store.local_version(), 200, lease)
 
 
 async def publish(request: web.Request) -> web.Response:
     state = state_of(request)
     obj = await read_json(request)
+    ttl = _ttl(obj)
     chosen = isinstance(obj, dict) and "id" in obj
     service = Service.from_json(obj, service_id=None if chosen else secrets.token_hex(6))
     try:
         check_service_fits(service)
     except ValidationError as exc:  # valid, but too large for the fleet to ever see
         raise RequestError(413, f"the service {exc.message}", exc.field) from None
-    if chosen and (again := _published_already(state, service)) is not None:
+    if chosen and (again := await _published_already(state, service, ttl)) is not None:
         return again
     # What the fleet can never see must not be acknowledged: one announcement is at most
     # MAX_PARTS datagrams.
@@ -83,32 +114,127 @@ async def publish(request: web.Request) -> web.Response:
         )
     with state.view.reserving(service):  # checked: concurrent publishes must count it
         for _ in range(3):
-            result = await state.writer.write(("add", service))
+            result = await state.writer.write(Add(service, ttl))
             if isinstance(result, int):
                 break
             if chosen:  # the same id published by a request that was in flight with this one
-                again = _published_already(state, service)
+                again = await _published_already(state, service, ttl)
                 assert again is not None
                 return again
             service = replace(service, id=secrets.token_hex(6))  # the random id exists: another
         else:
             raise RequestError(500, "could not allocate a service id")
     state.write_problem = None
+    lease = state.store.lease(service.id) if ttl is not None else None
+    state.leases.set(lease, service.id)
     notify_discovery(state.cfg.state_dir)
-    log.info("published %s (%s, %s), version %d", service.id, service.name, service.type, result)
-    return _published(service, result, 201)
+    log.info(
+        "published %s (%s, %s), version %d%s",
+        service.id,
+        service.name,
+        service.type,
+        result,
+        "" if ttl is None else f", lease {ttl:g} s",
+    )
+    return _published(service, result, 201, lease)
 
 
 async def unpublish(request: web.Request) -> web.Response:
     state = state_of(request)
     service_id = request.match_info["id"]
-    version = await state.writer.write(("remove", service_id))
+    version = await state.writer.write(Remove(service_id))
     if version is None:
         raise RequestError(404, f"no local service with id {service_id!r}", "id")
     state.write_problem = None
+    state.leases.set(None, service_id)
     notify_discovery(state.cfg.state_dir)
     log.info("unpublished %s, version %s", service_id, version)
     return web.Response(status=204)
+
+
+def _no_such_service(service_id: str) -> RequestError:
+    return RequestError(
+        404,
+        f"no local service with id {service_id!r} (unpublished, or its lease ran out)",
+        "id",
+    )
+
+
+async def get_service(request: web.Request) -> web.Response:
+    state = state_of(request)
+    service_id = request.match_info["id"]
+    service = state.store.get_service(service_id)
+    if service is None:
+        raise _no_such_service(service_id)
+    return _published(service, state.store.local_version(), 200, state.store.lease(service_id))
+
+
+async def _renew(state: ApiState, service_id: str, ttl: float | None) -> Lease:
+    if await state.writer.write(Renew(service_id, ttl)) is None:
+        if state.store.get_service(service_id) is None:
+            raise _no_such_service(service_id)
+        raise RequestError(
+            409,
+            f"service {service_id!r} has no lease to renew; publish it with a ttl",
+            "ttl",
+        )
+    lease = state.store.lease(service_id)
+    assert lease is not None
+    state.leases.set(lease, service_id)
+    state.view.leases_changed()
+    return lease
+
+
+async def renew(request: web.Request) -> web.Response:
+    """POST /services/{id}/renew: the lease runs `ttl` seconds from now again (the body may
+    give another ttl); the answer says until when. Not fsynced: cheap."""
+    state = state_of(request)
+    service_id = request.match_info["id"]
+    ttl = None
+    if request.body_exists:
+        obj = await read_json(request)
+        if not isinstance(obj, dict) or set(obj) - {"ttl"}:
+            raise ValidationError("body", 'expected nothing, or {"ttl": seconds}')
+        ttl = _ttl(obj)
+    lease = await _renew(state, service_id, ttl)
+    return json_response({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
+
+
+#: A held lease is renewed each time this share of its ttl has passed.
+HOLD_EVERY = 1 / 3
+
+
+async def hold(request: web.Request) -> web.StreamResponse:
+    """POST /services/{id}/hold: renew the lease for as long as this connection stays open
+    (a Server-Sent Event `renewed` each time); when it closes, the lease runs out after its
+    ttl. A program that cannot run a timer keeps its services alive with one request."""
+    state = state_of(request)
+    service_id = request.match_info["id"]
+    lease = await _renew(state, service_id, None)
+    if "text/event-stream" not in request.headers.get("Accept", ""):
+        # A client that cannot read a stream gets one renewal (as /renew), not a hang.
+        return json_response({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
+    resp = web.StreamResponse(
+        headers={"Content-Type": "text/event-stream; charset=utf-8", "Cache-Control": "no-cache"}
+    )
+    await resp.prepare(request)
+    try:
+        while True:
+            body = json.dumps({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
+            await resp.write(f"event: renewed\ndata: {body}\n\n".encode())
+            if await state.hub.closing(max(0.2, lease.ttl * HOLD_EVERY)):
+                break  # sdfrd stops: the lease runs its ttl (a restart is quicker than that)
+            try:
+                lease = await _renew(state, service_id, None)
+            except RequestError as exc:
+                gone = json.dumps({"id": service_id, "error": exc.message})
+                await resp.write(f"event: gone\ndata: {gone}\n\n".encode())
+                break
+    except ConnectionError:  # the holder went away: the lease runs out after its ttl
+        log.info("hold of %s ended: its lease runs out in %g s", service_id, lease.ttl)
+    with contextlib.suppress(ConnectionError):
+        await resp.write_eof()
+    return resp
 
 
 async def list_services(request: web.Request) -> web.Response:

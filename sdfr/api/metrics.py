@@ -2,11 +2,55 @@
 
 from __future__ import annotations
 
+import os
+import platform
+from collections.abc import Callable
+from pathlib import Path
+
 from aiohttp import web
 
-from sdfr import wire
+from sdfr import DIST_NAME, __version__, procfs, wire
 from sdfr.api.state import LATENCY_BUCKETS, ApiState, state_of
 from sdfr.status import DiscoveryStatus
+
+#: The Prometheus text format's content type.
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+_TICKS = os.sysconf("SC_CLK_TCK")
+_PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def _boot_time() -> float:
+    """When the machine booted (Unix seconds): process start times count from it."""
+    try:
+        for line in Path("/proc/stat").read_text().splitlines():
+            if line.startswith("btime "):
+                return float(line.split()[1])
+    except OSError:
+        pass
+    return 0.0
+
+
+_BOOT = _boot_time()
+
+
+def process_stats(pid: int) -> dict[str, float] | None:
+    """CPU seconds, resident and virtual memory, start time, open descriptors of `pid`
+    (None when it is gone): the standard process_* metrics, from /proc."""
+    fields = procfs.stat_fields(pid)
+    if fields is None or len(fields) < 22:
+        return None
+    try:
+        fds = len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        fds = -1
+    return {
+        "cpu": (int(fields[11]) + int(fields[12])) / _TICKS,
+        "start": _BOOT + int(fields[19]) / _TICKS,
+        "virtual": float(fields[20]),
+        "resident": float(int(fields[21]) * _PAGE),
+        "fds": float(fds),
+    }
+
 
 # -- /metrics ----------------------------------------------------------------------------------
 
@@ -54,6 +98,23 @@ def metrics_text(state: ApiState) -> str:
     reachable = sum(1 for p in peers if p.reachable)
     out.append(f'sdfr_peers{{state="reachable"}} {reachable}')
     out.append(f'sdfr_peers{{state="known"}} {len(peers)}')
+    family(
+        "sdfr_peer_indicator",
+        "gauge",
+        "Connection indicator of each reachable robot: the share of recent pings answered.",
+    )
+    for p in peers:
+        if p.reachable and p.indicator is not None:
+            out.append(f'sdfr_peer_indicator{{robot_id="{_label(p.robot_id)}"}} {p.indicator}')
+    family(
+        "sdfr_peer_rtt_seconds",
+        "gauge",
+        "Smoothed round-trip time of the pings to each reachable robot.",
+    )
+    for p in peers:
+        if p.reachable and p.rtt_ms is not None:
+            rtt = p.rtt_ms / 1000
+            out.append(f'sdfr_peer_rtt_seconds{{robot_id="{_label(p.robot_id)}"}} {rtt!r}')
     family("sdfr_local_services", "gauge", "Services this robot publishes.")
     out.append(f"sdfr_local_services {len(local)}")
     family("sdfr_discovery_up", "gauge", "1 when the discovery layer is alive and heartbeating.")
@@ -90,22 +151,55 @@ def metrics_text(state: ApiState) -> str:
     conflict = status.robot_id_conflict
     out.append(f"sdfr_robot_id_conflicts_total {0 if conflict is None else conflict.count}")
     family(
-        "sdfr_api_request_seconds",
+        "sdfr_api_request_duration_seconds",
         "histogram",
-        "Time the REST API took to answer, by method and route template.",
+        "Time the REST API took to answer, by method and route template (an event stream "
+        "counts when it ends).",
     )
     for (method, route), hist in sorted(state.latency.items()):
         labels = f'method="{method}",route="{_label(route)}"'
         cumulative = 0
+        name = "sdfr_api_request_duration_seconds"
         for bound, n in zip(LATENCY_BUCKETS, hist.buckets, strict=True):
             cumulative += n
-            out.append(f'sdfr_api_request_seconds_bucket{{{labels},le="{bound}"}} {cumulative}')
-        out.append(f'sdfr_api_request_seconds_bucket{{{labels},le="+Inf"}} {hist.count}')
-        out.append(f"sdfr_api_request_seconds_sum{{{labels}}} {hist.total!r}")
-        out.append(f"sdfr_api_request_seconds_count{{{labels}}} {hist.count}")
+            out.append(f'{name}_bucket{{{labels},le="{bound}"}} {cumulative}')
+        out.append(f'{name}_bucket{{{labels},le="+Inf"}} {hist.count}')
+        out.append(f"{name}_sum{{{labels}}} {hist.total!r}")
+        out.append(f"{name}_count{{{labels}}} {hist.count}")
+    family("sdfr_event_streams", "gauge", "GET /events streams open now.")
+    out.append(f"sdfr_event_streams {state.hub.streams if state.hub is not None else 0}")
+    family(
+        "sdfr_leases_expired_total", "counter", "Registrations withdrawn as their lease ran out."
+    )
+    out.append(f"sdfr_leases_expired_total {state.leases.expired if state.leases else 0}")
+    family("sdfr_build_info", "gauge", "Always 1; the labels say what runs.")
+    out.append(
+        f'sdfr_build_info{{version="{__version__}",distribution="{DIST_NAME}",'
+        f'python="{platform.python_version()}"}} 1'
+    )
+    _process_metrics(out, family, {"api": os.getpid(), "discovery": status.pid if disc.up else 0})
     return "\n".join(out) + "\n"
+
+
+def _process_metrics(
+    out: list[str], family: Callable[[str, str, str], None], pids: dict[str, int]
+) -> None:
+    """The standard process_* metrics of both layers' processes, by `layer`."""
+    stats = {layer: process_stats(pid) for layer, pid in pids.items() if pid > 0}
+    rows = (
+        ("process_cpu_seconds_total", "counter", "User and system CPU time spent.", "cpu"),
+        ("process_resident_memory_bytes", "gauge", "Resident memory size.", "resident"),
+        ("process_virtual_memory_bytes", "gauge", "Virtual memory size.", "virtual"),
+        ("process_start_time_seconds", "gauge", "Start time, Unix seconds.", "start"),
+        ("process_open_fds", "gauge", "Open file descriptors.", "fds"),
+    )
+    for name, kind, text, key in rows:
+        family(name, kind, text + " By layer (api, discovery).")
+        for layer, values in sorted(stats.items()):
+            if values is not None and values[key] >= 0:
+                out.append(f'{name}{{layer="{layer}"}} {values[key]!r}')
 
 
 async def metrics(request: web.Request) -> web.Response:
     body = metrics_text(state_of(request)).encode()
-    return web.Response(body=body, headers={"Content-Type": "text/plain; version=0.0.4"})
+    return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE})

@@ -23,15 +23,73 @@ class Error(Struct):
     field: str | None
 
 
+Ttl = Annotated[
+    float,
+    Meta(
+        ge=1,
+        le=366 * 86400,
+        description="Seconds the registration lives unless renewed (a lease): its owner renews "
+        "it (POST /services/{id}/renew, or holds it with POST /services/{id}/hold); when it "
+        "runs out the service is withdrawn from the fleet like an unpublish. Left out or "
+        "null: it lives until unpublished.",
+    ),
+]
+Expires = Annotated[float, Meta(description="Unix time the lease runs out unless renewed")]
+
+
+class Registration(ServiceInput, forbid_unknown_fields=True):
+    """A registration: a service, optionally with a lease (`ttl`)."""
+
+    ttl: Ttl | None = None
+
+
 class Published(Struct):
     id: str
     service: ServiceOutput
     version: int
+    ttl: Annotated[float, Meta(description="The lease's ttl; null: no lease")] | None
+    expires: Expires | None
+
+
+class LocalService(ServiceOutput):
+    """A registration of this robot: the service, and its lease (nulls when it has none)."""
+
+    ttl: float | None
+    expires: Expires | None
 
 
 class Services(Struct):
-    services: list[ServiceOutput]
+    services: list[LocalService]
     version: Annotated[int, Meta(description="Bumped by every publish and unpublish")]
+
+
+class Renewal(Struct, forbid_unknown_fields=True):
+    ttl: Ttl | None = None
+
+
+class Renewed(Struct):
+    id: str
+    ttl: float
+    expires: Expires
+
+
+class ChangeEvent(Struct):
+    """One change (the `data` of a Server-Sent Event; its `event` names the kind). More
+    fields by kind: `address`, `indicator`, `new`, `services` (robot.appeared); `added`,
+    `removed`, `changed` (robot.services); `previous` (robot.address); `threshold`,
+    `direction` (robot.indicator); `last_seen` (robot.left, robot.unreachable); `service`,
+    `ttl`, `expires` (service.*); `after` (resync). A services list over 8 KiB is left out
+    (`services_truncated`, `services_count`)."""
+
+    id: Annotated[int, Meta(description="Grows with every event; resume with Last-Event-ID")]
+    event: str
+    time: Seconds
+    robot_id: Annotated[str | None, Meta(description="null: this robot")]
+
+
+class Events(Struct):
+    events: list[ChangeEvent]
+    last_id: Annotated[int, Meta(description="Ask again with since=last_id for what follows")]
 
 
 class Neighbor(Struct):
@@ -156,9 +214,15 @@ class KeyMode(Struct, forbid_unknown_fields=True):
 MODELS = (
     ServiceInput,
     ServiceOutput,
+    Registration,
     Error,
     Published,
     Services,
+    LocalService,
+    Renewal,
+    Renewed,
+    ChangeEvent,
+    Events,
     Neighbors,
     History,
     Self,

@@ -7,6 +7,7 @@ from typing import Any
 from sdfr import __version__
 from sdfr.api.handlers import FLAG_VALUES
 from sdfr.api.models import components
+from sdfr.events import FAMILIES, KINDS
 
 # -- the OpenAPI document ----------------------------------------------------------------------
 
@@ -44,6 +45,9 @@ def openapi_document() -> dict[str, object]:
     """The OpenAPI 3.1 description of `create_app`'s routes."""
     schemas = components()
     key_id_param = [{"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}]
+    service_id_param = [
+        {"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}
+    ]
     unix_only = (
         "Only on the unix socket STATE_DIR/api.sock (403 over TCP). Never returns key material."
     )
@@ -59,7 +63,7 @@ def openapi_document() -> dict[str, object]:
                 "operationId": "publishService",
                 "tags": ["services"],
                 "summary": "Publish a service",
-                "requestBody": {"required": True, "content": _json_content(_ref("ServiceInput"))},
+                "requestBody": {"required": True, "content": _json_content(_ref("Registration"))},
                 "responses": {
                     "201": {
                         **_answer("Published, on disk", "Published"),
@@ -85,14 +89,115 @@ def openapi_document() -> dict[str, object]:
             },
         },
         "/services/{id}": {
+            "get": {
+                "operationId": "getService",
+                "tags": ["services"],
+                "summary": "One of this robot's registrations, with its lease",
+                "parameters": service_id_param,
+                "responses": {"200": _answer("The registration", "Published"), "404": _ERROR},
+            },
             "delete": {
                 "operationId": "unpublishService",
                 "tags": ["services"],
                 "summary": "Unpublish a service",
-                "parameters": [
-                    {"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}
-                ],
+                "parameters": service_id_param,
                 "responses": {"204": {"description": "Unpublished"}, "404": _ERROR},
+            },
+        },
+        "/services/{id}/renew": {
+            "post": {
+                "operationId": "renewService",
+                "tags": ["services"],
+                "summary": "Renew a registration's lease: it runs its ttl from now again",
+                "description": "The body may give another ttl. Cheap (not fsynced).",
+                "parameters": service_id_param,
+                "requestBody": {"required": False, "content": _json_content(_ref("Renewal"))},
+                "responses": {
+                    "200": _answer("Renewed: until when", "Renewed"),
+                    "404": {**_ERROR, "description": "No such service (or its lease ran out)"},
+                    "409": {**_ERROR, "description": "The service has no lease"},
+                    **_ERRORS_400,
+                },
+            }
+        },
+        "/services/{id}/hold": {
+            "post": {
+                "operationId": "holdService",
+                "tags": ["services"],
+                "summary": "Renew a lease for as long as this request stays open",
+                "description": "With `Accept: text/event-stream`: an event `renewed` (data: "
+                "the Renewed object) each third of the ttl, for as long as the connection "
+                "stays open; `gone` if the service is unpublished meanwhile. When the "
+                "connection closes (its program ended), the lease runs out after its ttl. "
+                "Without, it renews once and answers like /renew.",
+                "parameters": service_id_param,
+                "responses": {
+                    "200": {
+                        "description": "A stream of Server-Sent Events, or one renewal",
+                        "content": {
+                            "text/event-stream": {"schema": {"type": "string"}},
+                            "application/json": {"schema": _ref("Renewed")},
+                        },
+                    },
+                    "404": _ERROR,
+                    "409": {**_ERROR, "description": "The service has no lease"},
+                },
+            }
+        },
+        "/events": {
+            "get": {
+                "operationId": "listEvents",
+                "tags": ["discovery"],
+                "summary": "Changes: robots appearing, leaving, unreachable, their services, "
+                "indicator thresholds; this robot's registrations",
+                "description": "With `Accept: text/event-stream`, a stream of Server-Sent "
+                "Events (`id`, `event` the kind, `data` a ChangeEvent) that goes on until the "
+                "client closes it; without, the events after `since` at once as JSON. Kinds: "
+                + "; ".join(f"`{k}`: {v}" for k, v in KINDS.items())
+                + ". Ids grow; a stream resumes after the `Last-Event-ID` header (or "
+                "`since`); without either it starts with the next change. When the events "
+                "after that id are no longer kept (the log holds the last 4,096), the first "
+                "event is `resync`: read the state again.",
+                "parameters": [
+                    {
+                        "name": "since",
+                        "in": "query",
+                        "required": False,
+                        "schema": {"type": "integer", "minimum": 0, "maximum": 2**63 - 1},
+                        "description": "Events after this id (0: every one kept)",
+                    },
+                    {
+                        "name": "event",
+                        "in": "query",
+                        "required": False,
+                        "style": "form",
+                        "explode": True,
+                        "schema": {
+                            "type": "array",
+                            "items": {"enum": sorted([*KINDS, *FAMILIES])},
+                        },
+                        "description": "Only these kinds (`robot` for every robot.* kind); "
+                        "repeatable",
+                    },
+                    {
+                        "name": "Last-Event-ID",
+                        "in": "header",
+                        "required": False,
+                        "schema": {"type": "string", "pattern": "^[0-9]{1,18}$"},
+                        "description": "Resume after this id (what an EventSource sends)",
+                    },
+                ],
+                "responses": {
+                    "200": {
+                        "description": "The events",
+                        "content": {
+                            "application/json": {"schema": _ref("Events")},
+                            "text/event-stream": {"schema": {"type": "string"}},
+                        },
+                    },
+                    "422": _ERROR,
+                    "503": {**_ERROR, "description": "Too many event streams are open"},
+                },
             }
         },
         "/neighbors": {

@@ -24,7 +24,9 @@ from sdfr.config import Config, location_max_len
 from sdfr.model import PeerRecord, Service
 from sdfr.status import DiscoveryStatus
 from sdfr.store import (
+    Lease,
     Op,
+    Renew,
     Store,
     StoreError,
     write_error,
@@ -127,6 +129,15 @@ def neighbor_json(peer: PeerRecord, services: Iterable[Service]) -> dict[str, ob
     }
 
 
+def local_json(service: Service, lease: Lease | None) -> dict[str, object]:
+    """A registration of this robot: the service, and its lease's ttl and end (or nulls)."""
+    return {
+        **service.to_json(),
+        "ttl": None if lease is None else lease.ttl,
+        "expires": None if lease is None else lease.expires,
+    }
+
+
 class StoreView:
     """Reads of the store, cached until the data they come from changes."""
 
@@ -173,6 +184,10 @@ class StoreView:
             self._local_body = None
         return self._local_version, self._local
 
+    def leases_changed(self) -> None:
+        """A lease was renewed (the version stays): the body of /services is made again."""
+        self._local_body = None
+
     def parts_with(self, extra: Service) -> int:
         """Update parts the local set, the publishes in flight and `extra` need, with the
         longest headers this robot can send (its id, its longest LOCATION); each service's
@@ -211,8 +226,12 @@ class StoreView:
     def services_body(self) -> bytes:
         version, services = self.local()
         if self._local_body is None:
+            leases = {x.service_id: x for x in self.store.leases()}
             self._local_body = json_bytes(
-                {"services": [s.to_json() for s in services], "version": version}
+                {
+                    "services": [local_json(s, leases.get(s.id)) for s in services],
+                    "version": version,
+                }
             )
         return self._local_body
 
@@ -247,8 +266,10 @@ class Writer:
     #: Average fsync time (seconds) under which fsyncs run inline.
     INLINE_FSYNC = 0.001
 
-    def __init__(self, state_dir: Path) -> None:
+    def __init__(self, state_dir: Path, committed: Callable[[], None] | None = None) -> None:
         self.state_dir = state_dir
+        #: Called after each commit (the event streams have news).
+        self.committed = committed
         self._store: Store | None = None
         self._queue: list[tuple[Op, asyncio.Future[int | StoreError | None]]] = []
         self._busy = False
@@ -273,13 +294,18 @@ class Writer:
             try:
                 store = self._open()
                 results = store.apply([op for op, _ in batch])
-                t0 = time.perf_counter()
-                if self.fsync_avg < self.INLINE_FSYNC:
-                    store.sync()
-                else:
-                    await asyncio.to_thread(store.sync)
-                self.fsync_avg = 0.9 * self.fsync_avg + 0.1 * (time.perf_counter() - t0)
+                # A renewal is not worth an fsync: a power cut that loses it takes its owner
+                # (a program on this robot) down too.
+                if not all(isinstance(op, Renew) for op, _ in batch):
+                    t0 = time.perf_counter()
+                    if self.fsync_avg < self.INLINE_FSYNC:
+                        store.sync()
+                    else:
+                        await asyncio.to_thread(store.sync)
+                    self.fsync_avg = 0.9 * self.fsync_avg + 0.1 * (time.perf_counter() - t0)
                 self.commits += 1
+                if self.committed is not None:
+                    self.committed()
             except StoreError as exc:
                 for _, fut in batch:
                     if not fut.done():
@@ -316,7 +342,11 @@ class ApiState:
         return discovery_state(DiscoveryStatus.from_json(self.store.read_status()))
 
     def take_status(self, data: bytes) -> None:
-        """A status datagram from the discovery layer."""
+        """A datagram from the discovery layer: its status, or news in the event log."""
+        if data == b"events\n":
+            if self.hub is not None:
+                self.hub.wake()
+            return
         try:
             record = DiscoveryStatus.from_json(json.loads(data))
         except ValueError:
@@ -332,6 +362,10 @@ class ApiState:
     #: The last failed write of the state directory (time, reason, message), until one works.
     write_problem: tuple[float, str, str] | None = None
     live_status: DiscoveryStatus | None = None
+    #: GET /events (sdfr.api.events.EventHub) and the lease timer (sdfr.api.leases.Leases);
+    #: set by create_app.
+    hub: Any = None
+    leases: Any = None
 
     @property
     def store(self) -> Store:

@@ -21,7 +21,7 @@ from aiohttp import web
 
 from sdfr.api import STATE, ApiState, Runner, create_app
 from sdfr.config import Config, from_args, split_hostport
-from sdfr.daemon import logs
+from sdfr.daemon import logs, notify
 from sdfr.errors import ConfigError
 from sdfr.store import STATUS_SOCKET, Store, StoreError
 
@@ -96,7 +96,9 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
         os.chmod(sock_path, 0o660)
         status.start()
         log.info("serving the API on http://%s and %s", cfg.api, sock_path)
+        beating = asyncio.get_running_loop().create_task(_beat())
         await stop.wait()
+        beating.cancel()
         log.info("stopping")
     finally:
         status.stop()
@@ -104,6 +106,13 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
         if sock_bound:
             with contextlib.suppress(OSError):
                 sock_path.unlink()
+
+
+async def _beat() -> None:
+    """The heartbeat the supervisor watches: from the event loop, so a hung loop stops it."""
+    while True:
+        notify.beat()
+        await asyncio.sleep(1.0)
 
 
 class _StatusListener:

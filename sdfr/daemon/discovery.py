@@ -19,13 +19,14 @@ import struct
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import replace
 from ipaddress import IPv4Address
 from pathlib import Path
 
-from sdfr import keystore, netif, status
+from sdfr import events, keystore, netif, status
 from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
-from sdfr.daemon import logs
+from sdfr.daemon import logs, notify
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.daemon.describe import DescribeServer
 from sdfr.errors import SdfrError
@@ -94,8 +95,13 @@ class DiscoveryLayer:
             services=services,
             keyring=keyring,
         )
-        self.core.restore(self._restore_views())
-        store.mark_all_unreachable()
+        saved = store.load_peers()
+        self.core.restore([r.shifted(-self.clock_offset) for r in saved])
+        # Nobody is reachable before we hear them again: tell the changes feed so.
+        store.mark_all_unreachable(events.unreachable_at_start(saved))
+        self.tracker = events.Tracker(
+            cfg.indicator_thresholds, [replace(r, reachable=False) for r in saved]
+        )
         self.sock = open_multicast_socket(cfg, self.iface)
         self.control = self._open_control(cfg.state_dir / CONTROL_NAME)
         self.addressing: Addressing | None = None
@@ -125,10 +131,6 @@ class DiscoveryLayer:
 
     def _location(self) -> str:
         return location_url(self.cfg.describe, self.address)
-
-    def _restore_views(self) -> list[PeerRecord]:
-        """The saved history map, on the core's clock."""
-        return [r.shifted(-self.clock_offset) for r in self.store.load_peers()]
 
     @staticmethod
     def _open_control(path: Path) -> socket.socket:
@@ -274,6 +276,7 @@ class DiscoveryLayer:
 
     async def _periodic(self) -> None:
         while True:
+            notify.beat()
             await asyncio.sleep(STATUS_PERIOD)
             self._guard("periodic duties", self._check_address)
             self._guard("reloading the services", self._reload_services)
@@ -378,9 +381,24 @@ class DiscoveryLayer:
             self._state_failed(exc)
 
     def _save_views(self, removed: list[str], views: list[PeerRecord]) -> None:
-        self.store.delete_peers(removed)
-        if views:
-            self.store.save_peers(v.shifted(self.clock_offset) for v in views)
+        """Save what changed in the history map, with the events it makes, in one
+        transaction; then wake the API layer's event streams."""
+        records = [v.shifted(self.clock_offset) for v in views]
+        undo = self.tracker.checkpoint()
+        told = [self.tracker.forget(r) for r in removed]
+        for record in records:
+            told += self.tracker.observe(record)
+        try:
+            self.store.save_history(removed, records, told)
+        except StateWriteError:
+            self.tracker.rollback(undo)  # told again with the next try
+            raise
+        if told:
+            self._wake_api(b"events\n")
+
+    def _wake_api(self, message: bytes) -> None:
+        with contextlib.suppress(OSError):  # no API layer listening: it polls too
+            self._status_sock.sendto(message, str(self.cfg.state_dir / STATUS_SOCKET))
 
     def _stamp(self) -> tuple[int, int, int] | None:
         try:

@@ -3,9 +3,15 @@
 The API layer and the discovery layer are separate processes so that either
 can crash or be restarted while the other goes on; they share only the
 store in the state directory. The supervisor restarts a layer that exits
-without being asked to, with a growing back-off, and stops both on SIGTERM.
-If the supervisor itself is killed, the kernel kills both layers
-(PR_SET_PDEATHSIG), so a `kill -9` of sdfrd is a silent departure.
+without being asked to, with a growing back-off, and one whose heartbeat (a
+byte a second on a pipe) stops for STALL_AFTER seconds: a hung or stopped
+process is killed and started again. A layer that cannot start at all (exit
+status 2: an address that is not this machine's, permission denied, a bad
+configuration) ends sdfrd at once with status 2, since a restart cannot fix
+it. It stops both layers on SIGTERM. If the supervisor itself is killed, the
+kernel kills both layers (PR_SET_PDEATHSIG), so a `kill -9` of sdfrd is a
+silent departure. Under systemd (Type=notify) it says READY=1 once both
+layers beat, and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from pathlib import Path
 
 from sdfr import keystore, netif, wifi
 from sdfr.config import Config, from_args, to_args
-from sdfr.daemon import logs
+from sdfr.daemon import logs, notify
 from sdfr.errors import SdfrError
 from sdfr.store import Store
 
@@ -35,6 +41,12 @@ LAYERS = {"api": "sdfr.daemon.apiserver", "discovery": "sdfr.daemon.discovery"}
 STOP_GRACE = 5.0
 BACKOFF_MAX = 5.0
 STABLE_AFTER = 30.0
+#: A layer that has not beaten for this long (seconds) is hung or stopped: it is restarted.
+STALL_AFTER = 10.0
+#: Longest a layer may take from its start to its first heartbeat.
+START_GRACE = 30.0
+#: A layer's exit status for "cannot start; a restart will not help" (its message says why).
+EXIT_CANNOT_START = 2
 _PR_SET_PDEATHSIG = 1
 LOCK_NAME = "sdfrd.lock"
 
@@ -89,6 +101,11 @@ class Layer:
     backoff: float = 0.2
     restart_at: float = 0.0
     restarts: int = 0
+    #: The read end of the pipe the layer beats on, and when it last did (None: not yet).
+    beats: int | None = None
+    last_beat: float | None = None
+    #: It beat at least once since sdfrd started: it can start.
+    ever_up: bool = False
 
 
 class Supervisor:
@@ -98,15 +115,31 @@ class Supervisor:
         self.args = to_args(cfg)
         self.layers = [Layer(name, module) for name, module in LAYERS.items()]
         self.stopping = False
+        self.exit_status = 0
         self.pids_file = cfg.state_dir / "layers.json"
+        self.ready = False
+        self.watchdog = notify.watchdog_interval()
+        self._next_watchdog = 0.0
 
     def spawn(self, layer: Layer) -> None:
-        layer.proc = subprocess.Popen(
-            [sys.executable, "-m", layer.module, *self.args],
-            preexec_fn=_die_with_parent,
-            stdin=subprocess.DEVNULL,
-            pass_fds=() if self.lock_fd is None else (self.lock_fd,),
-        )
+        if layer.beats is not None:
+            os.close(layer.beats)
+        beats, beat_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("NOTIFY_", "WATCHDOG_"))}
+        env[notify.HEARTBEAT_ENV] = str(beat_w)
+        keep = (beat_w,) if self.lock_fd is None else (beat_w, self.lock_fd)
+        try:
+            layer.proc = subprocess.Popen(
+                [sys.executable, "-m", layer.module, *self.args],
+                preexec_fn=_die_with_parent,
+                stdin=subprocess.DEVNULL,
+                pass_fds=keep,
+                env=env,
+            )
+        finally:
+            os.close(beat_w)
+        layer.beats = beats
+        layer.last_beat = None
         layer.started = time.monotonic()
         log.info("%s layer started (pid %d)", layer.name, layer.proc.pid)
         self._write_pids()
@@ -134,16 +167,65 @@ class Supervisor:
             now = time.monotonic()
             for layer in self.layers:
                 self._watch(layer, now)
+            self._tell_systemd(now)
             time.sleep(0.05)
         return self.shutdown()
+
+    def _tell_systemd(self, now: float) -> None:
+        up = all(layer.proc is not None and layer.last_beat is not None for layer in self.layers)
+        if up and not self.ready:
+            self.ready = True
+            notify.notify("READY=1", f"STATUS=serving the API on {self.cfg.api}")
+        elif not up and self.ready:
+            self.ready = False
+            down = ", ".join(x.name for x in self.layers if x.proc is None or x.last_beat is None)
+            notify.notify(f"STATUS=restarting the {down} layer")
+        if self.watchdog is not None and now >= self._next_watchdog:
+            notify.notify("WATCHDOG=1")
+            self._next_watchdog = now + self.watchdog / 2
+
+    def _read_beats(self, layer: Layer, now: float) -> None:
+        if layer.beats is None:
+            return
+        try:
+            if os.read(layer.beats, 4096):
+                layer.last_beat = now
+                layer.ever_up = True
+        except BlockingIOError:
+            pass
 
     def _watch(self, layer: Layer, now: float) -> None:
         proc = layer.proc
         if proc is not None:
+            self._read_beats(layer, now)
             code = proc.poll()
             if code is None:
                 if now - layer.started > STABLE_AFTER:
                     layer.backoff = 0.2
+                since = layer.last_beat if layer.last_beat is not None else layer.started
+                limit = STALL_AFTER if layer.last_beat is not None else START_GRACE
+                if now - since > limit:
+                    log.warning(
+                        "%s layer (pid %d) has not beaten for %.0f s (hung or stopped); "
+                        "killing it to start it again",
+                        layer.name,
+                        proc.pid,
+                        now - since,
+                    )
+                    proc.kill()  # (SIGKILL ends a stopped process too)
+                    proc.wait()
+                else:
+                    return
+            code = proc.returncode
+            if code == EXIT_CANNOT_START and not layer.ever_up:
+                log.error(
+                    "%s layer cannot start (its error is above); a restart would not fix "
+                    "it: stopping",
+                    layer.name,
+                )
+                self.exit_status = EXIT_CANNOT_START
+                self.stopping = True
+                layer.proc = None
                 return
             log.warning(
                 "%s layer exited (%s); restarting in %.1f s",
@@ -161,6 +243,7 @@ class Supervisor:
             self.spawn(layer)
 
     def shutdown(self) -> int:
+        notify.notify("STOPPING=1")
         # Discovery first, so its Byebye goes out while the API still answers.
         for layer in reversed(self.layers):
             if layer.proc is not None and layer.proc.poll() is None:
@@ -176,8 +259,12 @@ class Supervisor:
                 layer.proc.kill()
                 layer.proc.wait()
         self.pids_file.unlink(missing_ok=True)
+        for layer in self.layers:
+            if layer.beats is not None:
+                os.close(layer.beats)
+                layer.beats = None
         log.info("stopped")
-        return 0
+        return self.exit_status
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -185,8 +272,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = resolve(from_args(argv))
         logging.getLogger().setLevel(cfg.log_level.upper())
-        Store(cfg.state_dir).close()  # a state directory we cannot use is reported once, here
+        store = Store(cfg.state_dir)  # a state directory we cannot use is reported once, here
         lock_fd = lock_state_dir(cfg.state_dir)
+        try:
+            # Leases that ran out while sdfrd was down end before discovery could announce them.
+            gone = store.expire_overdue(time.time())
+            if gone:
+                store.sync()
+                log.info("leases ran out while sdfrd was down: withdrew %s", ", ".join(gone))
+        finally:
+            store.close()
         keyring = keystore.seed_keyring(cfg.state_dir, cfg.key_file, cfg.auth)
         log.info(
             "fleet %d: %s",

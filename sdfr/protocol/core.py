@@ -283,6 +283,7 @@ class Core(CoreState):
             rtt_ms=None if peer.rtt is None else round(peer.rtt * 1000, 3),
             pings=len(peer.pings),
             services=peer.services,
+            departed=peer.byebye_boot == peer.boot_id,
         )
 
     def reachable(self) -> list[str]:

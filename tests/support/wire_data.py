@@ -50,8 +50,10 @@ wants = st.one_of(
         lambda xs: tuple(sorted(xs))
     ),
 )
+#: Text a service may hold: anything but control characters (sdfr.model.CONTROL_CHARS).
+printable = st.characters(blacklist_categories=("Cc", "Cs", "Zl", "Zp"))
 attr_values = st.one_of(
-    st.text(max_size=20),
+    st.text(printable, max_size=20),
     st.integers(-(2**53), 2**53),
     st.floats(allow_nan=False, allow_infinity=False),
     st.booleans(),
@@ -59,10 +61,12 @@ attr_values = st.one_of(
 services = st.builds(
     Service,
     id=st.from_regex(r"[A-Za-z0-9._-]{1,24}", fullmatch=True),
-    name=st.text(min_size=1, max_size=30).filter(lambda s: bool(s.strip())),
+    name=st.text(printable, min_size=1, max_size=30).filter(lambda s: bool(s.strip())),
     type=st.from_regex(r"[A-Za-z0-9][A-Za-z0-9._:/-]{0,30}", fullmatch=True),
-    url=st.none() | st.text(max_size=40),
-    attributes=st.dictionaries(st.text(min_size=1, max_size=12), attr_values, max_size=4),
+    url=st.none() | st.text(printable, max_size=40),
+    attributes=st.dictionaries(
+        st.text(printable, min_size=1, max_size=12), attr_values, max_size=4
+    ),
 )
 service_lists = st.lists(
     services.filter(lambda s: len(json.dumps(s.to_json(), ensure_ascii=False)) < 600),

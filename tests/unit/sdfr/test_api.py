@@ -87,7 +87,8 @@ async def test_publish_list_unpublish(cfg: Config, store: Store) -> None:
         assert created["version"] == 1
 
         r = await c.get("/services")
-        assert await r.json() == {"services": [created["service"]], "version": 1}
+        listed = {**created["service"], "ttl": None, "expires": None}
+        assert await r.json() == {"services": [listed], "version": 1}
 
         r = await c.delete(f"/services/{sid}")
         assert r.status == 204
@@ -400,7 +401,7 @@ async def test_metrics_exposition(cfg: Config, store: Store, discovery_store: St
         await c.get("/neighbors")
         r = await c.get("/metrics")
         assert r.status == 200
-        assert r.headers["Content-Type"] == "text/plain; version=0.0.4"
+        assert r.headers["Content-Type"] == "text/plain; version=0.0.4; charset=utf-8"
         samples = parse_metrics(await r.text())
     assert samples['sdfr_datagrams_total{direction="in",type="alive"}'] == 7
     assert samples['sdfr_datagrams_total{direction="out",type="byebye"}'] == 0
@@ -412,10 +413,10 @@ async def test_metrics_exposition(cfg: Config, store: Store, discovery_store: St
     assert samples["sdfr_local_services"] == 1
     assert samples["sdfr_discovery_up"] == 1
     labels = 'method="GET",route="/neighbors"'
-    assert samples[f"sdfr_api_request_seconds_count{{{labels}}}"] == 1
-    assert samples[f'sdfr_api_request_seconds_bucket{{{labels},le="+Inf"}}'] == 1
-    assert samples[f"sdfr_api_request_seconds_sum{{{labels}}}"] > 0
-    assert 'sdfr_api_request_seconds_count{method="POST",route="/services"}' in samples
+    assert samples[f"sdfr_api_request_duration_seconds_count{{{labels}}}"] == 1
+    assert samples[f'sdfr_api_request_duration_seconds_bucket{{{labels},le="+Inf"}}'] == 1
+    assert samples[f"sdfr_api_request_duration_seconds_sum{{{labels}}}"] > 0
+    assert 'sdfr_api_request_duration_seconds_count{method="POST",route="/services"}' in samples
 
 
 @aio

@@ -55,6 +55,31 @@ def test_bad_config_file_names_the_key(tmp_path: Path, text: str, word: str) -> 
         from_args(["--config", str(conf)])
 
 
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ('[sdfrd]\nifce = "lo"\n', "unknown key 'ifce' in .* \\(did you mean 'iface'\\?\\)"),
+        ("beacon-intervall = 2\n", "did you mean 'beacon_interval'"),
+        ('[sdrfd]\niface = "lo"\n', "unknown section \\[sdrfd\\] .*did you mean \\[sdfrd\\]"),
+        ('[sdfrd]\niface = "lo"\n[wifi]\nmode = 1\n', "unknown section \\[wifi\\]"),
+        (
+            'fleet = 3\n[sdfrd]\niface = "lo"\n',
+            "'fleet' is at the top level of .* which has an \\[sdfrd\\] table.*move 'fleet'",
+        ),
+        ("zzz = 1\n", "unknown key 'zzz' in [^(]*; known keys"),  # no hint when none is close
+        ("indicator_thresholds = [0.5, 2]\n", "indicator_thresholds: each must be above 0"),
+        ("indicator_thresholds = [true]\n", "indicator_thresholds: expected a list of numbers"),
+    ],
+)
+def test_unknown_keys_and_sections_are_errors_with_a_hint(
+    tmp_path: Path, text: str, says: str
+) -> None:
+    conf = tmp_path / "c.toml"
+    conf.write_text(text)
+    with pytest.raises(ConfigError, match=says):
+        from_args(["--config", str(conf)])
+
+
 def test_missing_config_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="does not exist"):
         from_args(["--config", str(tmp_path / "nope.toml")])
