@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 from netlab import cleanup, docker, kernel, manifest, naming
 from netlab.capture import DEFAULT_BPF
 from netlab.doctor import format_report, probe
-from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError
+from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError, missing_extra
 from netlab.lab import Lab
 from netlab.manifest import Manifest
 from netlab.ranges import UnitDisc
@@ -610,7 +610,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     from netlab.scenario import rebuild_report
 
     run_dir = Path(args.run_dir)
-    report = rebuild_report(run_dir)
+    try:
+        report = rebuild_report(run_dir)
+    except ImportError as exc:
+        raise missing_extra(exc, "netlab report") from None
     robots = report["traffic"]["robots"]
     print(
         f"{run_dir / 'report.json'}: {len(robots)} robots over "

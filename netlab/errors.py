@@ -52,6 +52,14 @@ class ShapingUnsupported(NetlabError):
     """This kernel cannot do the requested shaping; the message names the missing module."""
 
 
+def missing_extra(exc: ImportError, feature: str) -> NetlabError:
+    """The error of a feature whose library (scapy, matplotlib: the netlab extra) is missing."""
+    from sdfr import need_extra
+
+    package = (exc.name or "").split(".")[0] or str(exc)
+    return NetlabError(need_extra("netlab", feature, package))
+
+
 class KernelError(NetlabError):
     """A netlink, nftables or namespace operation failed; the message says which and why."""
 

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from netlab import naming, procstat
 from netlab.analysis import count_updates, read_run
 from netlab.docker import DEFAULT_IMAGE
-from netlab.errors import NetlabError
+from netlab.errors import NetlabError, missing_extra
 from netlab.observe import Observer, Probe, Sample, TruthLog, TruthState, indicators_before
 from netlab.ranges import UnitDisc
 from netlab.scenario.actions import ACTIONS
@@ -383,7 +383,9 @@ class Run:
         if self.captured and (self.pending or report):
             try:
                 records = read_run(self.run_dir)
-            except (NetlabError, OSError, ImportError) as exc:
+            except ImportError as exc:
+                self.say(f"cannot read the captures: {missing_extra(exc, 'reading captures')}")
+            except (NetlabError, OSError) as exc:
                 self.say(f"cannot read the captures: {exc}")
         for res, cond, since, until in self.pending:
             if records is None:
@@ -403,7 +405,9 @@ class Run:
                 result.report = write_report(
                     self.run_dir, records, self.samples, self.truth.states(), lag, meta
                 )
-            except (NetlabError, OSError, ImportError, ValueError) as exc:
+            except ImportError as exc:
+                self._say(f"  report not written: {missing_extra(exc, 'the report')}")
+            except (NetlabError, OSError, ValueError) as exc:
                 self._say(f"  report not written: {exc}")
         self._say("")
         for line in result.summary():

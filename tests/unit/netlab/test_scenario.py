@@ -4,6 +4,7 @@ the engine run against a fake lab whose daemons list exactly the medium's truth.
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -755,3 +756,26 @@ def test_cli_refuses_a_bad_scenario_file_with_status_2(
     assert "no bundled scenario" in capsys.readouterr().err
     assert cli.main(["report", str(tmp_path)]) == 1
     assert "neither captures" in capsys.readouterr().err
+
+
+def test_without_the_netlab_extra_a_run_says_what_to_install(
+    fake: tuple[Backend, list[FakeLab]],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    backend, _ = fake
+    for module in ("matplotlib", "matplotlib.figure", "scapy", "scapy.utils", "scapy.error"):
+        monkeypatch.setitem(sys.modules, module, None)  # as if not installed
+    lines: list[str] = []
+    sc = Scenario("tiny", robots=2, beacon=BEACON, steps=[Start()])
+    result = run(sc, runs=tmp_path, say=lines.append, backend=backend)
+    assert result.ok
+    assert any(
+        "report not written: the report needs the 'netlab' extra (matplotlib is not installed)"
+        ": pip install 'sdfr-robots[netlab]'" in line
+        for line in lines
+    ), lines
+    (folder,) = tmp_path.iterdir()
+    assert cli.main(["report", str(folder)]) == 1
+    assert "netlab report needs the 'netlab' extra" in capsys.readouterr().err
