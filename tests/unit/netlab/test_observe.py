@@ -147,7 +147,10 @@ def test_a_process_tree_and_its_cpu_and_memory() -> None:
         last = procstat.Usage.read([os.getpid(), child.pid])
         used = procstat.window(first, last)
         assert used["processes"] == 2
-        assert used["cpu_s"] >= 0.25 and used["cpu_percent"] > 50
+        # The CPU spent is measured; its share of the wall time depends on how busy the
+        # machine is, so only its arithmetic is checked (a loaded CI host gave 18 %).
+        assert used["cpu_s"] >= 0.25 and used["wall_s"] >= used["cpu_s"] - 0.05
+        assert used["cpu_percent"] == pytest.approx(100 * used["cpu_s"] / used["wall_s"], rel=0.02)
         assert 5 < used["rss_mib"] < 2000 and 0 < used["pss_mib"] <= used["rss_mib"]
     finally:
         child.kill()
