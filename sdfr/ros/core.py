@@ -20,7 +20,15 @@ import msgspec
 
 from sdfr.client import Client
 from sdfr.errors import ApiError, SdfrError
-from sdfr.model import AttrValue, Service, ServiceOutput
+from sdfr.model import (
+    Attributes,
+    AttrValue,
+    Service,
+    ServiceId,
+    ServiceName,
+    ServiceType,
+    ServiceUrl,
+)
 from sdfr.ros.params import NodeParams
 from sdfr.ros.source import ChangeSource, PollingSource
 from sdfr.ros.spawn import SpawnedDaemon, ensure_daemon, stop_daemon
@@ -127,6 +135,17 @@ class Sink(Protocol):
 # -- the daemon's JSON -----------------------------------------------------------------------
 
 
+class _ServiceJson(msgspec.Struct):
+    """A service as the API shows it; fields a newer sdfrd adds (a lease's `ttl` and
+    `expires`) are ignored, as a client should."""
+
+    id: ServiceId
+    name: ServiceName
+    type: ServiceType
+    url: ServiceUrl | None
+    attributes: Attributes
+
+
 class _RobotJson(msgspec.Struct):
     robot_id: str
     address: str
@@ -134,10 +153,10 @@ class _RobotJson(msgspec.Struct):
     indicator: float | None
     rtt_ms: float | None
     last_seen: float
-    services: list[ServiceOutput]
+    services: list[_ServiceJson]
 
 
-def _service(s: ServiceOutput) -> Service:
+def _service(s: _ServiceJson) -> Service:
     return Service(id=s.id, name=s.name, type=s.type, url=s.url, attributes=s.attributes)
 
 
@@ -163,7 +182,7 @@ def robots_from_json(items: object, what: str = "neighbors") -> tuple[Robot, ...
 
 def services_from_json(items: object) -> tuple[Service, ...]:
     try:
-        parsed = msgspec.convert(items, list[ServiceOutput])
+        parsed = msgspec.convert(items, list[_ServiceJson])
     except msgspec.ValidationError as exc:
         raise BridgeError(f"unexpected answer from sdfrd for services: {exc}") from None
     return tuple(_service(s) for s in parsed)

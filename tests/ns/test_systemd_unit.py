@@ -48,10 +48,14 @@ def test_the_unit_under_systemd(tmp_path: Path) -> None:
         d.mkdir()
     unit = example_text("sdfrd.service").replace("/usr/local/bin/sdfrd", str(venv_bin / "sdfrd"))
     (units / "sdfrd.service").write_text(unit)
-    # The test's only changes to the unit: a short watchdog, and /root visible (this test's
-    # interpreter may live there, as pyenv's does).
+    # The test's only changes to the unit: a short watchdog, /root visible (this test's
+    # interpreter may live there, as pyenv's does), and /tmp shared when the checkout or
+    # its interpreter lives there (a CI clone may): PrivateTmp would hide sdfrd itself.
+    under_tmp = any(
+        p.is_relative_to("/tmp") for p in (REPO, venv_bin.resolve(), Path(sys.executable).resolve())
+    )
     (units / "sdfrd.service.d" / "test.conf").write_text(
-        "[Service]\nWatchdogSec=4\nProtectHome=no\n"
+        "[Service]\nWatchdogSec=4\nProtectHome=no\n" + ("PrivateTmp=no\n" if under_tmp else "")
     )
     (units / "sdfr-probe.service").write_text(PROBE.format(sdfr=venv_bin / "sdfr"))
     (etc / "robot.toml").write_text(

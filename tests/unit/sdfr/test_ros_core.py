@@ -32,6 +32,7 @@ from sdfr.ros.core import (
     diagnosis_of,
     diff,
     robots_from_json,
+    services_from_json,
 )
 from sdfr.ros.params import DESCRIPTIONS, NodeParams
 from sdfr.ros.source import PollingSource
@@ -388,3 +389,14 @@ def test_the_polling_source_reads_the_list_until_stopped(spawned: tuple[Bridge, 
         thread.join(timeout=10)
     assert not thread.is_alive() and source.last_error == ""
     assert got[0].stamp <= got[-1].stamp
+
+
+def test_fields_a_newer_sdfrd_adds_are_ignored_and_bad_ones_named() -> None:
+    leased = {
+        "id": "cam", "name": "camera", "type": "sensor.camera", "url": None,
+        "attributes": {"fps": 30}, "ttl": 10.0, "expires": 1.7e9,
+    }  # fmt: skip
+    (service,) = services_from_json([leased])
+    assert (service.id, service.attributes) == ("cam", {"fps": 30})
+    with pytest.raises(BridgeError, match=r"for services: .*name"):
+        services_from_json([{**leased, "name": 5}])
