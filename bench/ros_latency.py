@@ -3,11 +3,12 @@
 Two netlab robots, each running sdfrd (beacon --beacon seconds) and the ROS 2 node `sdfr`
 (rclpy, Fast DDS inside the robot), and a probe on each (tests/ros/probe_ros2.py). The probe
 on r1 publishes a service through /sdfr/publish, then unpublishes it: --changes changes in
-all, one at a time, after a random pause (so changes fall anywhere in r2's polling
-period). Each latency is from just before r1's probe publishes to the moment r2's
-probe receives the first /sdfr/neighbors message showing the change (both clocks are the
-host's). It is the sum of DDS on r1, the node's REST call, sdfrd's delta datagram, r2's node
-polling (`poll_interval`, measured at each value of --poll) and DDS on r2.
+all, one at a time, after a random pause. Each latency is from just before r1's probe
+publishes to the moment r2's probe receives the first /sdfr/neighbors message showing the
+change (both clocks are the host's). It is the sum of DDS on r1, the node's REST call,
+sdfrd's delta datagram, r2's sdfrd telling its change stream (GET /events), r2's node
+reading the list again, and DDS on r2. (`poll_interval`, set with --poll, matters only to a
+node whose sdfrd has no change stream.)
 
 JSON on stdout and in --out (runs/bench-ros.json). Needs root and .venv/ros2
 (make ros-setup).
@@ -98,9 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench.ros_latency", description=__doc__.splitlines()[0])
     p.add_argument("--changes", type=int, default=50, help="changes measured per setting")
     p.add_argument("--beacon", type=float, default=1.0, help="sdfrd's beacon interval (s)")
-    p.add_argument(
-        "--poll", type=float, nargs="+", default=[0.25, 0.05], help="node poll intervals (s)"
-    )
+    p.add_argument("--poll", type=float, nargs="+", default=[0.25], help="node poll intervals (s)")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-ros.json")
     args = p.parse_args(argv)
     if os.geteuid() != 0:

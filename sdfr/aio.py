@@ -15,7 +15,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
-from collections.abc import AsyncIterator, Iterable, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TypeVar
@@ -231,9 +231,11 @@ class AsyncClient:
         since: int | None = None,
         *,
         reconnect: bool = True,
+        on_open: Callable[[], object] | None = None,
     ) -> AsyncIterator[Change]:
         """`async for change in client.watch(...)`: changes as they happen (see
-        `Client.watch`), resuming after the last one seen when the stream breaks."""
+        `Client.watch`), resuming after the last one seen when the stream breaks; `on_open`
+        is called each time the stream is (re)opened."""
         cursor = since
         kinds = list(kinds or ())
         first = True
@@ -254,6 +256,8 @@ class AsyncClient:
                             await resp.read(),
                         )
                     first = False
+                    if on_open is not None:
+                        on_open()
                     parser = SseParser()
                     while raw := await resp.content.readline():
                         done = parser.feed(raw.decode("utf-8", errors="replace").rstrip("\r\n"))

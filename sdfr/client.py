@@ -22,7 +22,7 @@ import json
 import socket
 import threading
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TypeVar
@@ -323,13 +323,15 @@ class Client:
         since: int | None = None,
         *,
         reconnect: bool = True,
+        on_open: Callable[[], object] | None = None,
     ) -> Iterator[Change]:
         """Changes as they happen (GET /events as Server-Sent Events), forever.
 
         `since`: start after this event id (None: with the next change). When the daemon
         restarts or the stream breaks, it connects again and resumes after the last change
         seen (with `reconnect`; the first connection must work). A `resync` change means
-        some were lost: read the state again.
+        some were lost: read the state again. `on_open` is called each time the stream is
+        (re)opened, before its first change: the moment to read the state a watcher follows.
         """
         cursor = since
         kinds = list(kinds or ())
@@ -349,6 +351,8 @@ class Client:
                         calls.events(), resp.status, resp.getheader("Content-Type", ""), data
                     )
                 first = False
+                if on_open is not None:
+                    on_open()
                 parser = SseParser()
                 while raw := resp.readline():
                     done = parser.feed(raw.decode("utf-8", errors="replace").rstrip("\r\n"))

@@ -30,7 +30,7 @@ from sdfr.model import (
     ServiceUrl,
 )
 from sdfr.ros.params import NodeParams
-from sdfr.ros.source import ChangeSource, PollingSource
+from sdfr.ros.source import ChangeSource, EventStreamSource, PollingSource
 from sdfr.ros.spawn import SpawnedDaemon, ensure_daemon, stop_daemon
 
 log = logging.getLogger("sdfr.ros")
@@ -330,7 +330,10 @@ class Bridge:
         self.sink = sink
         self.clock = clock
         self._connect = connect or (lambda: Client(params.api, timeout=5.0, retry_delays=()))
-        self.source = source or PollingSource(self._connect, params.poll_interval, clock)
+        polling = PollingSource(self._connect, params.poll_interval, clock)
+        self.source = source or EventStreamSource(
+            self._connect, polling, refresh=QUALITY_REFRESH, clock=clock
+        )
         self.spawned: SpawnedDaemon | None = None
         self._client = self._connect()
         self._lock = threading.Lock()  # one request at a time on self._client

@@ -113,6 +113,7 @@ DESCRIPTIONS = {
     "sdfrd_args": "more sdfrd flags for a daemon the node starts, e.g. '--iface wlan0'",
     "sdfrd_log": "file for the output of a daemon the node starts (default: a file in /tmp)",
     "spawn_timeout": "seconds to wait for a started sdfrd to answer",
-    "poll_interval": f"seconds between reads of the neighbour list ({POLL_MIN}-{POLL_MAX})",
+    "poll_interval": "seconds between reads of the neighbour list when sdfrd has no change "
+    f"stream (GET /events) to follow ({POLL_MIN}-{POLL_MAX})",
     "diagnostics_period": "seconds between health reports on /diagnostics",
 }

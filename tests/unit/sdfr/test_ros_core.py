@@ -3,6 +3,7 @@ health, and a real sdfrd that the bridge starts (and stops) or finds running."""
 
 from __future__ import annotations
 
+import http.server
 import os
 import shlex
 import sys
@@ -35,7 +36,7 @@ from sdfr.ros.core import (
     services_from_json,
 )
 from sdfr.ros.params import DESCRIPTIONS, NodeParams
-from sdfr.ros.source import PollingSource
+from sdfr.ros.source import EventStreamSource, PollingSource
 from sdfr.ros.spawn import SpawnError
 from tests.support.api import free_port
 
@@ -400,3 +401,54 @@ def test_fields_a_newer_sdfrd_adds_are_ignored_and_bad_ones_named() -> None:
     assert (service.id, service.attributes) == ("cam", {"fps": 30})
     with pytest.raises(BridgeError, match=r"for services: .*name"):
         services_from_json([{**leased, "name": 5}])
+
+
+def test_the_bridge_follows_the_change_stream_and_stops_at_once(
+    spawned: tuple[Bridge, Recorder],
+) -> None:
+    bridge, sink = spawned
+    source = bridge.source
+    assert isinstance(source, EventStreamSource)
+    wait_for("the stream followed", lambda: source.streaming and sink.lists, timeout=10)
+    t0 = time.monotonic()
+    bridge.close()  # stopping does not wait out the source's refresh period
+    assert time.monotonic() - t0 < 3.0
+
+
+class _OlderSdfrd(http.server.BaseHTTPRequestHandler):
+    """An sdfrd from before the change stream: GET /events is not found."""
+
+    def do_GET(self) -> None:
+        body = b'{"neighbors": []}' if self.path == "/neighbors" else b'{"error": "not found"}'
+        self.send_response(200 if self.path == "/neighbors" else 404)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+def test_a_daemon_without_the_change_stream_is_polled() -> None:
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _OlderSdfrd)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    api = f"127.0.0.1:{server.server_address[1]}"
+    delivered: list[object] = []
+    stop = threading.Event()
+
+    def connect() -> Client:
+        return Client(api, timeout=2.0, retry_delays=())
+
+    source = EventStreamSource(connect, PollingSource(connect, 0.05), refresh=60.0)
+    runner = threading.Thread(target=source.run, args=(delivered.append, stop))
+    runner.start()
+    try:
+        wait_for("lists read by polling", lambda: len(delivered) >= 5, timeout=10)
+        assert not source.streaming
+    finally:
+        stop.set()
+        runner.join(5)
+        server.shutdown()
+        server.server_close()
+    assert not runner.is_alive()
