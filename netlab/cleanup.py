@@ -158,7 +158,7 @@ def leftovers(name: str) -> list[str]:
     """What of lab `name` is still there: its namespaces, its containers (when Docker
     answers) and its manifest (as text); empty once the lab is down."""
     left = [f"namespace {ns}" for ns in kernel.list_ns(naming.prefix(name))]
-    if docker.why_not() is None:
+    with contextlib.suppress(docker.DockerError):  # no Docker here: no containers either
         left += [f"container {c}" for c in docker.labelled(name)]
     if manifest.load(name) is not None:
         left.append(f"manifest {manifest.path_of(name)}")
