@@ -36,7 +36,28 @@ class ChangeSource(Protocol):
         ...
 
 
-class PollingSource:
+class _Reader:
+    """Reads the neighbour list and hands it on; a failure is logged once until it changes."""
+
+    clock: Callable[[], float]
+    #: The last failure to read the list ("" when the last read worked).
+    last_error = ""
+
+    def read(self, client: Client, deliver: Callable[[Snapshot], None]) -> None:
+        from sdfr.ros.core import read_snapshot
+
+        try:
+            snapshot = read_snapshot(client, self.clock)
+        except (ApiError, SdfrError) as exc:
+            if str(exc) != self.last_error:
+                log.warning("cannot read the neighbour list: %s", exc)
+            self.last_error = str(exc)
+        else:
+            self.last_error = ""
+            deliver(snapshot)
+
+
+class PollingSource(_Reader):
     """`GET /neighbors` every `interval` seconds, on a client of its own."""
 
     def __init__(
@@ -48,28 +69,16 @@ class PollingSource:
         self.connect = connect
         self.interval = interval
         self.clock = clock
-        #: The last failure to read the list ("" when the last read worked).
-        self.last_error = ""
 
     def run(self, deliver: Callable[[Snapshot], None], stop: threading.Event) -> None:
-        from sdfr.ros.core import read_snapshot
-
         with self.connect() as client:
             while not stop.is_set():
                 started = time.monotonic()
-                try:
-                    snapshot = read_snapshot(client, self.clock)
-                except (ApiError, SdfrError) as exc:
-                    if str(exc) != self.last_error:
-                        log.warning("cannot read the neighbour list: %s", exc)
-                    self.last_error = str(exc)
-                else:
-                    self.last_error = ""
-                    deliver(snapshot)
+                self.read(client, deliver)
                 stop.wait(max(0.0, self.interval - (time.monotonic() - started)))
 
 
-class EventStreamSource:
+class EventStreamSource(_Reader):
     """The neighbour list read again whenever sdfrd's change stream says a robot changed."""
 
     def __init__(
@@ -83,13 +92,10 @@ class EventStreamSource:
         self.fallback = fallback
         self.refresh = refresh
         self.clock = clock
-        self.last_error = ""
         #: Whether the stream is followed now (False: not yet, or polling instead).
         self.streaming = False
 
     def run(self, deliver: Callable[[Snapshot], None], stop: threading.Event) -> None:
-        from sdfr.ros.core import read_snapshot
-
         wake = threading.Event()
         unsupported = threading.Event()
 
@@ -125,15 +131,7 @@ class EventStreamSource:
                     self.fallback.run(deliver, stop)
                     return
                 wake.clear()  # a change from now on is read by the next round
-                try:
-                    snapshot = read_snapshot(client, self.clock)
-                except (ApiError, SdfrError) as exc:
-                    if str(exc) != self.last_error:
-                        log.warning("cannot read the neighbour list: %s", exc)
-                    self.last_error = str(exc)
-                else:
-                    self.last_error = ""
-                    deliver(snapshot)
+                self.read(client, deliver)
                 until = time.monotonic() + self.refresh
                 while not (stop.is_set() or wake.is_set()) and time.monotonic() < until:
                     wake.wait(min(0.1, until - time.monotonic()))
