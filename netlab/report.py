@@ -164,7 +164,11 @@ def write_report(
         report["agreement"] = _agreement_summary(agree)
 
     plots: dict[str, str] = report["plots"]
-    timeline = Timeline.of(meta, start, end, run_dir.name)
+    # A run folder named after its scenario (the demo's) is named with its parent's.
+    run = run_dir.name if run_dir.name != meta.get("scenario") else run_dir.absolute().parent.name
+    timeline = Timeline.of(
+        meta, start, end, f"{run}/{run_dir.name}" if run != run_dir.name else run
+    )
     plots["bytes_per_robot"] = _save(
         _plot_bytes(report["traffic"], duration), run_dir / "bytes_per_robot.png", timeline
     )
