@@ -35,6 +35,10 @@ MAX_MX = 5
 #: Largest MX decode accepts at all.
 MAX_MX_ACCEPTED = 120
 CONFIGID_MODULUS = 2**24
+#: Wire versions: 1 speaks only the full SSDP-style forms; 2 also reads and writes the
+#: compact forms (see `encode`), and says so on its full forms (X-SDFR-WIRE: 2).
+WIRE_FULL = 1
+WIRE_COMPACT = 2
 
 
 def fleet_target(fleet: int) -> str:
@@ -56,6 +60,8 @@ class Origin:
     boot_id: int  # BOOTID.UPNP.ORG, 0 .. 2**31-1
     version: int  # X-SDFR-VERSION, 0 .. 2**53; CONFIGID.UPNP.ORG carries version % 2**24
     digest: str  # X-SDFR-DIGEST, 16 lowercase hex chars (sdfr.model.service_digest)
+    #: The wire version the sender speaks (X-SDFR-WIRE; WIRE_COMPACT for a compact datagram).
+    wire: int = WIRE_FULL
 
 
 WANT_ALL: Literal["all"] = "all"
@@ -76,6 +82,9 @@ class Discovery:
     # encode: HOST is group:port, which must be a multicast address iff this is True;
     # decode: True iff MAN is present and HOST is a multicast address (or the given group).
     multicast: bool = True
+    #: A fetch's X-SDFR-HAVE: the version of the robot's set the fetcher holds (same boot),
+    #: so that the answer can be what changed since rather than the whole set.
+    have: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,11 +125,16 @@ class Update:
 
 @dataclass(frozen=True, slots=True)
 class Alive:
-    """`NOTIFY` with `NTS: ssdp:alive`: the beacon, no body."""
+    """`NOTIFY` with `NTS: ssdp:alive`: the beacon, no body.
+
+    With `seq` it is also a ping to every robot that hears it (X-SDFR-SEQ), each answering
+    with a ping reply of that sequence number.  A compact Alive may leave `location` empty
+    (the robot's address did not change) and has no max-age (0)."""
 
     origin: Origin
     location: str
     max_age: int
+    seq: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
