@@ -1,6 +1,9 @@
 """Decoding: the bytes of one datagram to a message, or a `Reject` saying why not.  Never
 raises: a bad datagram is a value."""
 
+import zlib
+from collections.abc import Sequence
+
 from sdfr.errors import ValidationError
 from sdfr.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
 from sdfr.wire.messages import (
@@ -19,7 +22,9 @@ from sdfr.wire.messages import (
     MAX_MX_ACCEPTED,
     MAX_PARTS,
     MAX_SEQ,
+    MAX_UNPACKED,
     MAX_VERSION,
+    PACKED,
     WANT_ALL,
     WIRE_COMPACT,
     WIRE_FULL,
@@ -34,6 +39,7 @@ from sdfr.wire.messages import (
     Want,
     _is_digest,
     _is_multicast,
+    delta_dictionary,
     fleet_target,
 )
 
@@ -229,14 +235,47 @@ def _decode_compact(
         raise _Rejected("bad-value", "a compact update has X-SDFR-PART or X-SDFR-BASE, one")
     if part_text is not None:
         part, parts = _decode_part(part_text)
+        if body.startswith(PACKED):
+            body = _inflate(body[len(PACKED) :], None)
         services, _ = _decode_services(headers, body, delta=False)
         return Update(origin, location, 0, part, parts, services)
     assert base_text is not None
     base = _int_value("X-SDFR-BASE", base_text, 0, MAX_VERSION)
     if base >= origin.version:
         raise _Rejected("bad-value", f"X-SDFR-BASE {base} on version {origin.version}")
+    if body.startswith(PACKED):  # only a robot holding the base set can read it
+        return Update(origin, location, 0, 0, 1, (), base, (), body[len(PACKED) :])
     services, removed = _decode_services(headers, body, delta=True, compact=True)
     return Update(origin, location, 0, 0, 1, services, base, removed)
+
+
+def _inflate(data: bytes, dictionary: bytes | None) -> bytes:
+    """A packed body's JSON; never more than MAX_UNPACKED bytes of it."""
+    try:
+        d = zlib.decompressobj(-15, zdict=dictionary) if dictionary else zlib.decompressobj(-15)
+        out = d.decompress(data, MAX_UNPACKED + 1)
+        if len(out) > MAX_UNPACKED:
+            raise _Rejected("bad-body", f"inflates to more than {MAX_UNPACKED} bytes")
+        if not d.eof or d.unused_data:
+            raise _Rejected("bad-body", "the deflated body is cut short or has trailing bytes")
+    except zlib.error as exc:
+        raise _Rejected("bad-body", f"not a deflated body: {exc}") from None
+    return out
+
+
+def unpack_delta(msg: Update, base: Sequence[Service]) -> Update | Reject:
+    """A packed delta (`Update.packed`) read against its base set `base` (the services of
+    version `msg.base` the reader holds): the same Update with its services and removed ids;
+    a Reject when it does not inflate or parse (the reader's set was not the base after all:
+    the digest check that follows catches the rest).  An unpacked Update comes back as is."""
+    if msg.packed is None:
+        return msg
+    try:
+        body = _inflate(msg.packed, delta_dictionary(base))
+        services, removed = _decode_services({}, body, delta=True, compact=True)
+    except _Rejected as rej:
+        return Reject(rej.reason, rej.detail)
+    return Update(msg.origin, msg.location, msg.max_age, 0, 1, services, msg.base, removed)
 
 
 def _decode_response(headers: dict[str, str]) -> Response:

@@ -1,5 +1,6 @@
 """Encoding: a message to the bytes of one datagram; what fits in an Update."""
 
+import zlib
 from collections import Counter
 from collections.abc import Sequence
 from functools import cache, lru_cache
@@ -29,6 +30,7 @@ from sdfr.wire.messages import (
     MAX_PARTS,
     MAX_SEQ,
     MAX_VERSION,
+    PACKED,
     SERVER,
     WANT_ALL,
     WIRE_COMPACT,
@@ -48,7 +50,12 @@ from sdfr.wire.messages import (
 
 
 def encode(
-    msg: Message, *, group: str = DEFAULT_GROUP, port: int = DEFAULT_PORT, compact: bool = False
+    msg: Message,
+    *,
+    group: str = DEFAULT_GROUP,
+    port: int = DEFAULT_PORT,
+    compact: bool = False,
+    dictionary: bytes | None = None,
 ) -> bytes:
     """The datagram for `msg`; ValueError if a field is out of range or it exceeds MAX_ENCODED.
 
@@ -60,10 +67,12 @@ def encode(
     <digest>``) and the lines only a UPnP control point needs go (HOST, MAN, NT, NTS, USN,
     SERVER, CACHE-CONTROL, CONFIGID, CONTENT-TYPE, CONTENT-LENGTH; LOCATION unless given): a
     beacon takes about 75 bytes instead of 430.  Searches only by unicast (pings, fetches),
-    responses only as ping replies; plain SSDP clients always get the full form.
+    responses only as ping replies; plain SSDP clients always get the full form.  A compact
+    delta's body is deflated against `dictionary` (`delta_dictionary` of its base set) when
+    given and that is shorter.
     """
     if compact:
-        return _compact(msg)
+        return _compact(msg, dictionary)
     if isinstance(msg, Update):
         _check_update_shape(msg.part, msg.parts)
         blobs = [_service_json(s) for s in msg.services]
@@ -117,10 +126,8 @@ def encode_update_parts(
     `compact`: the compact form (see `encode`), LOCATION kept.
     """
     if compact:
-        _check_location(location)
-        prefix = _compact_head(origin, "update") + f"LOCATION: {location}\r\n".encode()
-    else:
-        prefix = _update_prefix(origin, location, max_age, _host(group, port))
+        return _compact_parts(origin, location, services)
+    prefix = _update_prefix(origin, location, max_age, _host(group, port))
     _check_unique_ids(services)
     blobs = [_service_json(s) for s in services]
     sizes = [len(b) for b in blobs]
@@ -146,11 +153,64 @@ def encode_update_parts(
     out: list[bytes] = []
     for i, (start, stop) in enumerate(groups):
         body = _body(blobs[start:stop])
-        if compact:  # no CONTENT-TYPE or CONTENT-LENGTH: shorter than `_pack` allowed for
-            suffix = f"X-SDFR-PART: {i + 1}/{total}\r\n\r\n".encode()
-        else:
-            suffix = _update_suffix(str(i + 1), total, str(len(body)))
+        suffix = _update_suffix(str(i + 1), total, str(len(body)))
         out.append(_finish(prefix + suffix, body, "Update"))
+    return out
+
+
+def _deflater(dictionary: bytes | None = None) -> "zlib._Compress":
+    if dictionary:
+        return zlib.compressobj(9, zlib.DEFLATED, -15, 9, zlib.Z_DEFAULT_STRATEGY, dictionary)
+    return zlib.compressobj(9, zlib.DEFLATED, -15, 9)
+
+
+def _pack_body(body: bytes, dictionary: bytes | None = None) -> bytes:
+    """`body` deflated (with its marker) when that is shorter, else as it is."""
+    c = _deflater(dictionary)
+    packed = PACKED + c.compress(body) + c.flush()
+    return packed if len(packed) < len(body) else body
+
+
+def _compact_parts(origin: Origin, location: str, services: Sequence[Service]) -> list[bytes]:
+    """A whole set in compact parts: each part's JSON deflated, as many services a part as
+    fit once deflated (a set of similar services takes a fifth of the datagrams)."""
+    _check_location(location)
+    _check_unique_ids(services)
+    prefix = _compact_head(origin, "update") + f"LOCATION: {location}\r\n".encode()
+    blobs = [_service_json(s) for s in services]
+    # The most a body may take, with the longest part line this set could need.
+    room = MAX_ENCODED - len(prefix) - len(f"X-SDFR-PART: {MAX_PARTS}/{MAX_PARTS}\r\n\r\n")
+    bodies: list[bytes] = []
+    group: list[bytes] = []
+    c = _deflater()
+    done = c.compress(_BODY_OPEN)
+
+    def close() -> None:
+        # The part as measured: deflated, or its plain JSON when that is no longer.
+        packed = PACKED + done + c.compress(_BODY_CLOSE) + c.flush()
+        plain = _body(group)
+        bodies.append(packed if len(packed) < len(plain) else plain)
+
+    for blob in blobs:
+        piece = (b"," if group else b"") + blob
+        trial = c.copy()
+        size = len(PACKED) + len(done) + len(trial.compress(piece + _BODY_CLOSE))
+        if size + len(trial.flush()) > room and group:  # full: the next part starts here
+            close()
+            group, c = [], _deflater()
+            done = c.compress(_BODY_OPEN)
+            piece = blob
+        group.append(blob)
+        done += c.compress(piece)
+    close()
+    if len(bodies) > MAX_PARTS:
+        raise ValueError(
+            f"{len(services)} services need {len(bodies)} update parts, more than {MAX_PARTS}"
+        )
+    out = []
+    for i, body in enumerate(bodies):
+        part = f"X-SDFR-PART: {i + 1}/{len(bodies)}\r\n\r\n".encode()
+        out.append(_finish(prefix + part, body, "Update"))
     return out
 
 
@@ -304,7 +364,7 @@ def _compact_head(origin: Origin, kind: str, start: str = _NOTIFY_LINE) -> bytes
     ).encode()
 
 
-def _compact(msg: Message) -> bytes:
+def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
     """The compact form of `msg` (see `encode`)."""
     if msg.origin is None:
         raise ValueError("a plain SSDP search has no compact form")
@@ -353,6 +413,8 @@ def _compact(msg: Message) -> bytes:
             _check_unique_ids(msg.services)
             if msg.base is not None:
                 body = _delta_body(msg, compact=True)
+                if dictionary is not None:
+                    body = _pack_body(body, dictionary)
                 lines.append(f"X-SDFR-BASE: {msg.base}")
             else:
                 if msg.removed:

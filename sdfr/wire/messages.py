@@ -2,6 +2,7 @@
 
 import ipaddress
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal, NoReturn, TypeAlias
@@ -121,6 +122,10 @@ class Update:
     #: `services` added or replaced gives the set of `origin.version`. None: a whole set's part.
     base: int | None = None
     removed: tuple[str, ...] = ()
+    #: A compact delta's body as it came, deflated against the base set (`services` and
+    #: `removed` are then empty): only a robot holding that set can read it, with
+    #: `sdfr.wire.unpack_delta`.  None for every other Update.
+    packed: bytes | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -177,6 +182,13 @@ _HEX = "0123456789abcdef"
 _BODY_OPEN = b'{"services":['
 _BODY_CLOSE = b"]}"
 _BODY_WRAP = len(_BODY_OPEN) + len(_BODY_CLOSE)
+#: A compact Update's body that starts with this byte is raw deflate (RFC 1951) of the JSON
+#: (which always starts with "{"); a delta's against `delta_dictionary` of its base set.
+PACKED = b"Z"
+#: Most bytes a packed body may inflate to (a part's JSON is far smaller): no inflate bomb.
+MAX_UNPACKED = 256 * 1024
+#: Deflate's window: the most of a dictionary it can use.
+_WINDOW = 32768
 
 _JSON_ENCODER = json.JSONEncoder(ensure_ascii=False, allow_nan=False, separators=(",", ":"))
 
@@ -196,6 +208,18 @@ def _is_multicast(host: str) -> bool:
         return ipaddress.ip_address(host).is_multicast
     except ValueError:
         return False
+
+
+def delta_dictionary(services: Sequence[Service]) -> bytes:
+    """What a packed delta is deflated against: its base set's services as JSON, by id.  The
+    sender and a robot holding the base set make the same bytes (the digest vouches for the
+    set): a new service much like the others then takes a few dozen bytes."""
+    blobs = [_JSON_ENCODER.encode(s.to_json()).encode() for s in sorted(services, key=_by_id)]
+    return b",".join(blobs)[-_WINDOW:]
+
+
+def _by_id(service: Service) -> str:
+    return service.id
 
 
 def _is_digest(value: str) -> bool:

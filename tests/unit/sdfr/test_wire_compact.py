@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import zlib
+from collections.abc import Callable
 
 import pytest
 from hypothesis import assume, given
@@ -11,6 +13,7 @@ from hypothesis import strategies as st
 from sdfr.model import Service
 from sdfr.wire import (
     MAX_ENCODED,
+    PACKED,
     WANT_ALL,
     WIRE_COMPACT,
     WIRE_FULL,
@@ -23,8 +26,10 @@ from sdfr.wire import (
     Update,
     Want,
     decode,
+    delta_dictionary,
     encode,
     encode_update_parts,
+    unpack_delta,
 )
 from tests.support.wire_data import (
     LOCATION,
@@ -32,6 +37,7 @@ from tests.support.wire_data import (
     check_reject,
     header_texts,
     locations,
+    noisy_services,
     origins,
     realistic_services,
     seqs,
@@ -104,20 +110,56 @@ def test_compact_delta_round_trip(
     assert decode(data) == msg
 
 
-def test_compact_set_in_parts_round_trips_and_keeps_location() -> None:
-    svcs = realistic_services(40)
+@pytest.mark.parametrize("make", [noisy_services, realistic_services])
+def test_compact_set_in_parts_round_trips_and_keeps_location(
+    make: Callable[[int], list[Service]],
+) -> None:
+    svcs = make(40)
     parts = encode_update_parts(NEW, LOCATION, 0, svcs, compact=True)
     full = encode_update_parts(NEW, LOCATION, 30, svcs)
-    assert 1 < len(parts) <= len(full)
-    assert sum(map(len, parts)) < sum(map(len, full))
+    assert len(parts) <= len(full) and sum(map(len, parts)) < sum(map(len, full))
+    if make is noisy_services:
+        assert len(parts) > 1  # random text barely deflates: several parts still
     got: list[Service] = []
     for i, data in enumerate(parts):
+        assert len(data) <= MAX_ENCODED
         assert len(data) <= MAX_ENCODED
         msg = decode(data)
         assert isinstance(msg, Update) and (msg.part, msg.parts) == (i, len(parts))
         assert msg.location == LOCATION and msg.base is None and msg.origin == NEW
         got.extend(msg.services)
     assert got == svcs
+
+
+def test_similar_services_deflate_to_a_fraction() -> None:
+    """A whole set in compact parts is deflated; a delta against the set it changes."""
+    svcs = realistic_services(100)
+    parts = encode_update_parts(NEW, LOCATION, 0, svcs, compact=True)
+    full = encode_update_parts(NEW, LOCATION, 30, svcs)
+    assert 5 * sum(map(len, parts)) < sum(map(len, full))
+    assert all(isinstance(m := decode(d), Update) and m.packed is None for d in parts)
+    new = Service("svc-100", "Camera 100 (front)", "ros2/topic", "ros2://robot-7/camera_100",
+                  {"encoding": "rgb8", "rate": 30, "frame": "cam_100_link"})  # fmt: skip
+    delta = Update(NEW, "", 0, 0, 1, (new,), 41, ("svc-003",))
+    plain = encode(delta, compact=True)
+    packed = encode(delta, compact=True, dictionary=delta_dictionary(svcs))
+    assert len(packed) < len(plain) - 100
+    got = decode(packed)
+    assert isinstance(got, Update) and got.packed is not None and got.services == ()
+    assert unpack_delta(got, svcs) == delta  # read against the base set
+    wrong = unpack_delta(got, realistic_services(50))  # not the base: garbage, or a reject
+    assert wrong != delta
+    assert unpack_delta(delta, svcs) is delta  # nothing to unpack
+    print(f"100 services: {sum(map(len, full))} bytes in full parts, {sum(map(len, parts))} "
+          f"compact; a one-service delta {len(plain)} plain, {len(packed)} deflated")  # fmt: skip
+
+
+def test_a_packed_body_cannot_inflate_without_bound() -> None:
+    bomb = zlib.compressobj(9, zlib.DEFLATED, -15)
+    data = PACKED + bomb.compress(b'{"services":[' + b" " * 1_000_000 + b"]}") + bomb.flush()
+    head = encode(Update(NEW, LOCATION, 0, 0, 1, ()), compact=True).split(b"\r\n\r\n")[0]
+    check_reject(decode(head + b"\r\n\r\n" + data), "bad-body", "more than")
+    check_reject(decode(head + b"\r\n\r\n" + PACKED + b"junk"), "bad-body", "deflated")
 
 
 def test_compact_forms_are_small() -> None:
