@@ -631,7 +631,10 @@ class Core(CoreState):
         o = msg.origin
         if peer.held is None or peer.held[:2] != (o.boot_id, msg.base):
             return
-        unpacked = wire.unpack_delta(msg, peer.services)
+        if msg.packed is not None and (peer.dictionary is None or peer.dictionary[0] != peer.held):
+            peer.dictionary = (peer.held, wire.delta_dictionary(peer.services))
+        dictionary = peer.dictionary[1] if peer.dictionary is not None else None
+        unpacked = wire.unpack_delta(msg, peer.services, dictionary)
         if isinstance(unpacked, Reject):
             self.counters.rejects[unpacked.reason] += 1
             return

@@ -75,6 +75,8 @@ class Peer:
     deferred: tuple[Addr, tuple[int, ...] | None] | None = None
     #: The wire version it speaks, as its last datagram said (sdfr.wire.WIRE_*).
     wire: int = 1
+    #: `sdfr.wire.delta_dictionary` of the set we hold, for its packed deltas: (held, bytes).
+    dictionary: tuple[tuple[int, int, str], bytes] | None = None
 
     @property
     def current(self) -> bool:

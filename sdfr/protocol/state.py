@@ -95,6 +95,7 @@ class CoreState:
         #: changed since the set it holds.
         self._recent: OrderedDict[int, tuple[Service, ...]] = OrderedDict()
         self._last_change_sent = -math.inf
+        self._dictionary_cache: tuple[int, bytes] | None = None
         #: Beacons sent as pings, by sequence number.
         self._group_pings: dict[int, _GroupPing] = {}
         #: Address -> the wire version of the peer there (what unicasts to it may be).
@@ -385,24 +386,32 @@ class CoreState:
 
     def _delta(self, base: int, had: tuple[Service, ...], compact: bool) -> bytes | None:
         """The datagram turning set `base` (`had`) into the one we tell of; None when it would
-        not fit one datagram or be no smaller than the whole set."""
+        not fit one datagram, or carry every service of the set anyway (the whole set, which
+        needs no base, is then no bigger)."""
         old = {s.id: s for s in had}
         _, services, _ = self._advertised()
         new_ids = {s.id for s in services}
         added = tuple(s for s in services if old.get(s.id) != s)
+        if services and len(added) == len(services):
+            return None
         removed = tuple(sid for sid in old if sid not in new_ids)
         location, max_age = ("", 0) if compact else (self.location, self.config.max_age)
         delta = Update(self._origin(), location, max_age, 0, 1, added, base=base, removed=removed)
         cfg = self.config
         # Compact: deflated against the base set, which every robot that can apply it holds.
-        dictionary = wire.delta_dictionary(had) if compact else None
+        dictionary = self._dictionary(base, had) if compact else None
         try:
-            data = wire.encode(
+            return wire.encode(
                 delta, group=cfg.group, port=cfg.port, compact=compact, dictionary=dictionary
             )
         except ValueError:
             return None
-        return data if len(data) < sum(map(len, self._update_parts(compact))) else None
+
+    def _dictionary(self, version: int, services: tuple[Service, ...]) -> bytes:
+        """`wire.delta_dictionary` of our set `version`, kept for the next delta from it."""
+        if self._dictionary_cache is None or self._dictionary_cache[0] != version:
+            self._dictionary_cache = (version, wire.delta_dictionary(services))
+        return self._dictionary_cache[1]
 
     def _catch_up(self, have: int, compact: bool) -> bytes | None:
         """What changed since our set `have`, for a robot that holds it (None: we no longer

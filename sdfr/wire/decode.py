@@ -263,15 +263,18 @@ def _inflate(data: bytes, dictionary: bytes | None) -> bytes:
     return out
 
 
-def unpack_delta(msg: Update, base: Sequence[Service]) -> Update | Reject:
+def unpack_delta(
+    msg: Update, base: Sequence[Service], dictionary: bytes | None = None
+) -> Update | Reject:
     """A packed delta (`Update.packed`) read against its base set `base` (the services of
     version `msg.base` the reader holds): the same Update with its services and removed ids;
     a Reject when it does not inflate or parse (the reader's set was not the base after all:
-    the digest check that follows catches the rest).  An unpacked Update comes back as is."""
+    the digest check that follows catches the rest).  An unpacked Update comes back as is.
+    `dictionary`: `delta_dictionary(base)` when the caller has it already."""
     if msg.packed is None:
         return msg
     try:
-        body = _inflate(msg.packed, delta_dictionary(base))
+        body = _inflate(msg.packed, dictionary or delta_dictionary(base))
         services, removed = _decode_services({}, body, delta=True, compact=True)
     except _Rejected as rej:
         return Reject(rej.reason, rej.detail)

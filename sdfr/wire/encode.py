@@ -159,9 +159,10 @@ def encode_update_parts(
 
 
 def _deflater(dictionary: bytes | None = None) -> "zlib._Compress":
+    level = 6  # nearly 9's ratio on such JSON, at a fraction of its time
     if dictionary:
-        return zlib.compressobj(9, zlib.DEFLATED, -15, 9, zlib.Z_DEFAULT_STRATEGY, dictionary)
-    return zlib.compressobj(9, zlib.DEFLATED, -15, 9)
+        return zlib.compressobj(level, zlib.DEFLATED, -15, 9, zlib.Z_DEFAULT_STRATEGY, dictionary)
+    return zlib.compressobj(level, zlib.DEFLATED, -15, 9)
 
 
 def _pack_body(body: bytes, dictionary: bytes | None = None) -> bytes:
@@ -191,15 +192,18 @@ def _compact_parts(origin: Origin, location: str, services: Sequence[Service]) -
         plain = _body(group)
         bodies.append(packed if len(packed) < len(plain) else plain)
 
+    raw = _BODY_WRAP
     for blob in blobs:
         piece = (b"," if group else b"") + blob
-        trial = c.copy()
-        size = len(PACKED) + len(done) + len(trial.compress(piece + _BODY_CLOSE))
-        if size + len(trial.flush()) > room and group:  # full: the next part starts here
-            close()
-            group, c = [], _deflater()
-            done = c.compress(_BODY_OPEN)
-            piece = blob
+        raw += len(piece)
+        if raw > room - 8 and group:  # deflated it may still fit: measure (a flush of a copy)
+            trial = c.copy()
+            size = len(PACKED) + len(done) + len(trial.compress(piece + _BODY_CLOSE))
+            if size + len(trial.flush()) > room:  # full: the next part starts here
+                close()
+                group, c = [], _deflater()
+                done = c.compress(_BODY_OPEN)
+                piece, raw = blob, _BODY_WRAP + len(blob)
         group.append(blob)
         done += c.compress(piece)
     close()

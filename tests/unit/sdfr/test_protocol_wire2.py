@@ -82,7 +82,7 @@ def test_a_change_is_told_of_only_once_it_is_announced() -> None:
     net.run_for(2 * BEACON)
     t0 = net.now
     for v in range(2, 40):
-        net.set_services("r1", v, services("r1", 20 + v % 3, tag=str(v)))
+        net.set_services("r1", v, services("r1", 20 + v % 3))
         net.run_for(0.07 * (1 + v % 4))
     net.wait_until(lambda: net.all_see_all(names), timeout=1.0)
     for name in names:
