@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -21,6 +22,14 @@ from sdfr import procfs
 ROOT = Path(__file__).resolve().parent.parent
 SDFR_PORT = 1900
 SAMPLE_EVERY_S = 2.0
+
+
+def keep_logs(lab: Lab, folder: Path) -> None:
+    """Each robot's daemon log into the run folder (the lab's own folder is short-lived: its
+    path must stay short enough for the daemons' unix sockets)."""
+    for name, robot in lab.robots.items():
+        with contextlib.suppress(OSError):
+            shutil.copyfile(robot.log, folder / f"sdfrd-{name}.log")
 
 
 def err(text: str) -> None:

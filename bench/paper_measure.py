@@ -117,6 +117,29 @@ def udp_traffic(
     return out
 
 
+def mdns_messages(pcap: Path, own_mac: str, window: tuple[float, float]) -> dict[str, int]:
+    """mDNS (UDP 5353) messages a robot sent in `window`: queries and responses (the QR bit
+    of the DNS header), and the responses' UDP payload bytes."""
+    mac = bytes.fromhex(own_mac.replace(":", ""))
+    out = {"queries": 0, "responses": 0, "response_bytes": 0}
+    for t, frame, _ in _frames(pcap):
+        if not window[0] <= t <= window[1] or frame[6:12] != mac or frame[12:14] != b"\x08\x00":
+            continue
+        ihl = (frame[14] & 0x0F) * 4
+        at = 14 + ihl
+        if frame[23] != 17 or len(frame) < at + 8 + 12:
+            continue
+        sport, dport, ulen = struct.unpack_from("!HHH", frame, at)
+        if 5353 not in (sport, dport):
+            continue
+        if frame[at + 8 + 2] & 0x80:
+            out["responses"] += 1
+            out["response_bytes"] += ulen - 8
+        else:
+            out["queries"] += 1
+    return out
+
+
 def per_5_min(value: float, seconds: float) -> float:
     """`value` counted over `seconds`, as over 5 minutes."""
     return value * FIVE_MINUTES_S / seconds if seconds > 0 else math.nan

@@ -39,8 +39,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, err
+from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, err, keep_logs
 from bench.paper_measure import (
+    mdns_messages,
     per_5_min,
     propagation,
     read_events,
@@ -271,7 +272,7 @@ def run(folder: Path, timing: Timing = FULL, *, seed: int = 1) -> dict[str, Any]
     }
     lab_name = naming.unique_lab_name("z")
     err(f"bench-paper: side-by-side: lab {lab_name}, {n} robots, SDfR and python-zeroconf")
-    with Lab(lab_name, workdir=folder / "lab", seed=seed) as lab:
+    with Lab(lab_name, seed=seed) as lab:
         lab.add_robots(names, {r: (2.0 + i, 5.0) for i, r in enumerate(names)})
         fleet = Fleet(lab, folder, names, seed)
         try:
@@ -279,6 +280,7 @@ def run(folder: Path, timing: Timing = FULL, *, seed: int = 1) -> dict[str, Any]
                 result.update(steps(lab, fleet, names, timing))
         finally:
             fleet.stop_all()
+            keep_logs(lab, folder)
     result["conditions_after"] = conditions()
     result["table"] = table(result)
     return result
@@ -414,8 +416,13 @@ def churn_traffic(
                 for d in ("tx", "rx")
                 for s in ("payload", "frame")
             }
+    messages = {r: mdns_messages(folder / f"{r}.pcap", macs[r], window) for r in names}
     return {
         "window_s": round(seconds, 1),
+        "zeroconf_sent_per_robot_per_5_min": {
+            key: round(per_5_min(sum(m[key] for m in messages.values()) / len(names), seconds))
+            for key in ("queries", "responses", "response_bytes")
+        },
         "per_5_min_kB": {
             system: {
                 key: spread(v[key] for v in per[system].values())

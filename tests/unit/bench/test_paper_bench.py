@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from bench.paper_load import Board
-from bench.paper_measure import Reading, propagation, udp_traffic, usage
+from bench.paper_measure import Reading, mdns_messages, propagation, udp_traffic, usage
 from bench.side_by_side import everyone_lists, first_time, halves_apart, nobody_lists, own_services
 from bench.zc_node import TYPE, instance, owner
 
@@ -54,6 +54,22 @@ def test_udp_traffic_counts_what_a_robot_sent_and_received_per_port(tmp_path: Pa
     assert (got[1900].tx.datagrams, got[1900].tx.payload, got[1900].tx.frame) == (2, 110, 194)
     assert (got[1900].rx.datagrams, got[1900].rx.payload) == (1, 50)
     assert (got[5353].tx.datagrams, got[5353].rx.payload, got[5353].rx.frame) == (0, 70, 112)
+
+
+def test_mdns_messages_tells_queries_from_responses(tmp_path: Path) -> None:
+    query = b"\x00\x00\x00\x00" + b"\x00" * 8 + b"q"
+    answer = b"\x00\x00\x84\x00" + b"\x00" * 8 + b"a" * 100
+    p = pcap(
+        tmp_path / "r1.pcap",
+        [
+            (1.0, frame(MINE, 5353, 5353, query)),
+            (2.0, frame(MINE, 5353, 5353, answer)),
+            (3.0, frame(OTHER, 5353, 5353, answer)),  # not ours
+            (4.0, frame(MINE, 1900, 1900, answer)),  # not mDNS
+        ],
+    )
+    got = mdns_messages(p, MINE, (0.0, 9.0))
+    assert got == {"queries": 1, "responses": 1, "response_bytes": len(answer)}
 
 
 def test_propagation_times_each_change_on_each_other_robot() -> None:
