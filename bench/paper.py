@@ -131,6 +131,9 @@ def wait_lists(lab: Lab, names: Sequence[str], timeout: float) -> float | None:
 
 
 def load_argv(cfg: Config, robot: str, duration: float, start_at: float, events: Path) -> list[str]:
+    # Without consumers (the growth runs, up to 20 robots) no watcher either: reading a
+    # 20-robot list 20 times a second on each robot would be a load of its own.
+    watch = "0.05" if cfg.consumers else "0"
     return [
         sys.executable,
         "-m",
@@ -147,6 +150,8 @@ def load_argv(cfg: Config, robot: str, duration: float, start_at: float, events:
         repr(start_at),
         "--events",
         str(events),
+        "--watch-interval",
+        watch,
     ]
 
 

@@ -239,7 +239,8 @@ def run(
         per_thread.append(out)
         spawn(consumer, Worker(host, port), stop, out)
     spawn(unpublisher, plan, board, stop)
-    spawn(watcher, Worker(host, port), plan, stop, log, reads)
+    if plan.watch_interval > 0:
+        spawn(watcher, Worker(host, port), plan, stop, log, reads)
     began = time.time()
     for t in threads:
         t.start()
@@ -276,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=300.0)
     p.add_argument("--publish-delay", type=float, default=10.0)
     p.add_argument("--unpublish-max", type=float, default=5.0)
-    p.add_argument("--watch-interval", type=float, default=0.05)
+    p.add_argument("--watch-interval", type=float, default=0.05, help="0: no watcher")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--first-delay", type=float, help="before the first publish (default 10 s)")
     p.add_argument("--churn-at", type=float, help="wall-clock time churn starts (default: start)")
