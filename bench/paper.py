@@ -219,11 +219,15 @@ def run_config(cfg: Config, duration: float, folder: Path, seed: int = 1) -> dic
     result["resources"] = resources(sampler.result())
     result["traffic"] = traffic(folder, names, macs, (start_at, end_at))
     linked = links_at(timeline) if model is not None else None
-    result["seen_by_peers"] = propagation(
-        read_events(folder / f"events-{n}.jsonl" for n in names),
-        names,
-        until=end_at,
-        linked=linked,
+    result["seen_by_peers"] = (
+        propagation(
+            read_events(folder / f"events-{n}.jsonl" for n in names),
+            names,
+            until=end_at,
+            linked=linked,
+        )
+        if cfg.consumers
+        else {"skipped": "no watcher in a run without consumers (nothing is timed)"}
     )
     result["problems"] = [
         f"{n}: load generator: {v.get('error') or str(v.get('errors')) + ' failed requests'}"
@@ -345,7 +349,7 @@ def summary_line(r: dict[str, Any]) -> str:
     t = r["traffic"]["per_5_min_kB"]
     lat = r["latency"]
     res = r["resources"]
-    seen = r["seen_by_peers"]["within_bound"]
+    seen = r["seen_by_peers"].get("within_bound", "-")
     return (
         f"{r['config']:>22}  TX {t['tx_payload'].get('mean', 0):6.1f} kB  "
         f"RX {t['rx_payload'].get('mean', 0):6.1f} kB  "
