@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic netlab image compose-up compose-down clean distclean
+.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -72,6 +72,14 @@ bench-flood: $(STAMP)
 bench-traffic: $(STAMP)
 	mkdir -p runs
 	$(BIN)/python -m bench.traffic
+
+# The paper's evaluation under its load (section 6, figures 4-6): static 2/4/6 robots x 30/50/70 %
+# publishers and the dynamic scenario, 5 minutes each, then python-zeroconf side by side and the
+# bytes per robot at 2, 6 and 20 robots (~1.5 h; ARGS=--quick: ~10 min); root. One run folder
+# runs/bench-paper-<time>/ with the figures (PNG and JSON); the result in runs/bench-paper.json.
+bench-paper: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.paper --out runs/bench-paper.json $(ARGS) > /dev/null
 
 netlab: $(STAMP)
 	$(BIN)/python -m netlab.demo

@@ -45,6 +45,7 @@ BEACON_INTERVAL = 10.0  # the paper's
 MISS_LIMIT = 3
 PING_WINDOW = 20
 REPLY_DELAY_MAX = 0.5
+UPDATE_GAP = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,6 +63,15 @@ class CoreConfig:
     mx: int = 1
     jitter: float = 0.1
     update_coalesce: float = 0.02
+    #: Changes go out at most once per this many seconds: a change after a quiet spell goes
+    #: out at once (after `update_coalesce`), the next ones gather until the gap has passed.
+    update_gap: float = UPDATE_GAP
+    #: Robot-to-robot datagrams in the compact form (`sdfr.wire.encode`) to peers that read
+    #: it, and the beacon as everyone's ping; False: only the full forms, as wire version 1.
+    wire_compact: bool = True
+    #: Announced sets kept, so that a robot that missed a change or a few is sent what changed
+    #: since the set it holds rather than the whole set.
+    delta_history: int = 32
     fetch_wait: float = 0.25
     group: str = wire.DEFAULT_GROUP
     port: int = wire.DEFAULT_PORT

@@ -80,7 +80,11 @@ class Core(CoreState):
         self.services = tuple(services)
         self.digest = service_digest(self.services)
         if self._started and not self._stopped:
-            self._update_at = min(self._update_at, now + self.config.update_coalesce)
+            # After a quiet spell at once (a burst from one program gathers for
+            # `update_coalesce`); within `update_gap` of the last change announced, at its end.
+            cfg = self.config
+            due = max(now + cfg.update_coalesce, self._last_change_sent + cfg.update_gap)
+            self._update_at = min(self._update_at, due)
 
     def restore(self, views: Iterable[PeerRecord]) -> None:
         """Load the history map saved by an earlier run; every peer starts unreachable."""
@@ -160,6 +164,9 @@ class Core(CoreState):
             self._on_update(peer, msg, now)
         elif isinstance(msg, Response):
             self._on_response(peer, msg, src, now)
+        elif isinstance(msg, Alive) and msg.seq is not None:
+            # A beacon that is a ping to all who hear it: answer it (the compact ping reply).
+            self._send(Response(self._origin(), self._me(), "", 0, msg.seq), src)
         if peer.robot_id in self.peers:
             self._want_current(peer, now, soon=soon)
 
@@ -177,7 +184,7 @@ class Core(CoreState):
         if now >= self._reply_at:
             self._flush_replies(now)
         if now >= self._next_beacon:
-            self._send(Alive(self._origin(), self.location, cfg.max_age), None)
+            self._beacon(now)
             self._next_beacon = now + self._beacon_period()
         if now >= self._next_prune:
             self._prune(now)
@@ -188,6 +195,12 @@ class Core(CoreState):
             if peer is not None and ping.addr == peer.address:
                 # (A challenge to another address says nothing of the peer's link.)
                 self._settle_ping(peer, ok=False)
+        late = [s for s, g in self._group_pings.items() if now >= g.sent + cfg.ping_timeout]
+        for seq in late:
+            for robot_id, addr in self._group_pings.pop(seq).targets.items():
+                peer = self.peers.get(robot_id)
+                if peer is not None and addr == peer.address:
+                    self._settle_ping(peer, ok=False)
         for peer in list(self.peers.values()):
             if not peer.proven and now >= peer.last_heard + cfg.dead_after:
                 self._forget(peer)
@@ -221,6 +234,8 @@ class Core(CoreState):
         )
         for ping in self._pings.values():
             t = min(t, ping.sent + cfg.ping_timeout)
+        for group in self._group_pings.values():
+            t = min(t, group.sent + cfg.ping_timeout)
         for peer in self.peers.values():
             if peer.reachable:
                 t = min(t, peer.last_heard + cfg.dead_after, peer.next_ping)
@@ -422,11 +437,13 @@ class Core(CoreState):
         horizon = now - self.config.proven_for
         for addr in [a for a, t in self._answered.items() if t < horizon]:
             del self._answered[addr]
+        self._wire_at = {p.address: p.wire for p in self.peers.values()}
         self._next_prune = now + self.config.proven_for
 
     def _plain_search_allowed(self, data: bytes) -> bool:
         """An unsigned plain SSDP search in a keyed fleet, which ssdp_interop may answer."""
-        return self.ssdp_interop and data.startswith(b"M-SEARCH ") and b"X-SDFR-" not in data
+        # (No X-SDFR header of any form: a compact search's origin is its X-SDFR line.)
+        return self.ssdp_interop and data.startswith(b"M-SEARCH ") and b"X-SDFR" not in data
 
     def _on_plain_search(self, msg: Discovery, src: Addr, now: float) -> None:
         """A plain SSDP client: a standard search response, read-only, rate-limited."""
@@ -437,7 +454,8 @@ class Core(CoreState):
         if not self._plain_budget.take(now):
             self.counters.rejects["rate-limited"] += 1
             return
-        self._send(Response(self._origin(), msg.st, self.location, cfg.max_age), src)
+        answer = Response(self._origin(), msg.st, self.location, cfg.max_age)
+        self._send(answer, src, compact=False)  # a standard client gets the full answer
 
     def _on_own_id(
         self, msg: wire.Message, origin: Origin, src: Addr, seal: Sealed | None, now: float
@@ -512,27 +530,45 @@ class Core(CoreState):
             self._send(Response(self._origin(), msg.st, "", 0, msg.seq, ride), src)
         if peer is None:
             return
-        if msg.want == WANT_ALL or (msg.want is not None and msg.want_version != self.version):
+        told = self._advertised()[0]
+        if msg.want == WANT_ALL or (msg.want is not None and msg.want_version != told):
             if msg.multicast:
                 if len(self._reply_to) < MAX_REPLY_TO:
                     self._reply_to[src] = peer.robot_id
                 delay = self.rng.uniform(0, min(float(msg.mx), cfg.reply_delay_max))
                 self._reply_at = min(self._reply_at, now + delay)
             else:
-                self._serve(peer, src, None, now)
+                self._serve(peer, src, None, now, have=msg.have)
         elif isinstance(msg.want, tuple):
             self._serve(peer, src, msg.want, now)
         if peer.robot_id in self.peers:
             # A searcher that just started announces its set right after searching.
             self._want_current(peer, now, soon=True)
 
-    def _serve(self, peer: Peer, dst: Addr, only: tuple[int, ...] | None, now: float) -> None:
-        """Send parts of our set to `dst` by unicast, once `dst` has proven a round trip."""
+    def _serve(
+        self,
+        peer: Peer,
+        dst: Addr,
+        only: tuple[int, ...] | None,
+        now: float,
+        have: int | None = None,
+    ) -> None:
+        """Send parts of our set to `dst` by unicast, once `dst` has proven a round trip; to
+        a robot that holds our set `have`, what changed since when we still know that set."""
         if not self._address_proven(dst, now):
             peer.deferred = (dst, only)
             self._challenge(peer, dst, now)
             return
-        parts = self._update_parts()
+        compact = self._compact_for(dst)
+        parts = self._update_parts(compact)
+        catch_up = self._catch_up(have, compact) if have is not None and only is None else None
+        if catch_up is not None and parts:
+            # One datagram, no bigger than a part: it costs the budget one part.
+            if not self._fetch_budget.take(dst[0], now, 1 / (FETCH_SETS_PER_S * len(parts))):
+                self.counters.rejects["fetch-limited"] += 1
+                return
+            self._emit(catch_up, dst, "update")
+            return
         wanted = len(parts) if only is None else sum(1 for i in only if i < len(parts))
         # Per address, at most FETCH_SETS_PER_S whole sets a second.
         if not parts or not self._fetch_budget.take(
@@ -596,6 +632,14 @@ class Core(CoreState):
         o = msg.origin
         if peer.held is None or peer.held[:2] != (o.boot_id, msg.base):
             return
+        if msg.packed is not None and (peer.dictionary is None or peer.dictionary[0] != peer.held):
+            peer.dictionary = (peer.held, wire.delta_dictionary(peer.services))
+        dictionary = peer.dictionary[1] if peer.dictionary is not None else None
+        unpacked = wire.unpack_delta(msg, peer.services, dictionary)
+        if isinstance(unpacked, Reject):
+            self.counters.rejects[unpacked.reason] += 1
+            return
+        msg = unpacked
         changed = {s.id: s for s in msg.services}
         gone = set(msg.removed)
         services = [changed.pop(s.id, s) for s in peer.services if s.id not in gone]
@@ -615,16 +659,16 @@ class Core(CoreState):
         if msg.ping is not None:  # the peer's ping, riding on its reply to ours
             self._send(Response(self._origin(), self._me(), "", 0, msg.ping), src)
         pending = self._pings.pop(msg.seq, None)
-        if pending is None or pending.robot_id != peer.robot_id or pending.addr != src:
+        if pending is None:
+            self._on_beacon_reply(peer, msg.seq, src, now)
             return
-        sample = now - pending.sent
-        peer.rtt = sample if peer.rtt is None else 0.8 * peer.rtt + 0.2 * sample
-        self._answered[src] = now
-        self._settle_ping(peer, ok=True)
+        if pending.robot_id != peer.robot_id or pending.addr != src:
+            return
+        self._round_trip(peer, now - pending.sent, src, now)
         if not peer.proven:
             peer.proven = True
             self._unproven -= 1
-            peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
+            self._schedule_ping(peer, now)
             self._dirty.add(peer.robot_id)
         if peer.deferred is not None:
             dst, only = peer.deferred
@@ -633,3 +677,18 @@ class Core(CoreState):
                 self._serve(peer, dst, only, now)
         if peer.fetch is not None and peer.fetch.retry_at == math.inf:
             peer.fetch.retry_at = now  # held back while it was unproven
+
+    def _on_beacon_reply(self, peer: Peer, seq: int, src: Addr, now: float) -> None:
+        """A peer answered one of our beacons (a ping to all): a round trip to it."""
+        group = self._group_pings.get(seq)
+        if group is None or group.targets.get(peer.robot_id) != src:
+            return
+        del group.targets[peer.robot_id]
+        if not group.targets:
+            del self._group_pings[seq]
+        self._round_trip(peer, now - group.sent, src, now)
+
+    def _round_trip(self, peer: Peer, sample: float, src: Addr, now: float) -> None:
+        peer.rtt = sample if peer.rtt is None else 0.8 * peer.rtt + 0.2 * sample
+        self._answered[src] = now
+        self._settle_ping(peer, ok=True)

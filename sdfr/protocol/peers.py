@@ -39,6 +39,14 @@ class _Ping:
 
 
 @dataclass(slots=True)
+class _GroupPing:
+    """A beacon that is also a ping: the peers expected to answer it, at their addresses."""
+
+    sent: float
+    targets: dict[str, Addr]
+
+
+@dataclass(slots=True)
 class Peer:
     """What this robot knows of another: the history map's entry, plus protocol timers."""
 
@@ -65,6 +73,10 @@ class Peer:
     challenged_at: float = -math.inf
     #: A fetch it asked for before its address was proven: (address, parts wanted or None).
     deferred: tuple[Addr, tuple[int, ...] | None] | None = None
+    #: The wire version it speaks, as its last datagram said (sdfr.wire.WIRE_*).
+    wire: int = 1
+    #: `sdfr.wire.delta_dictionary` of the set we hold, for its packed deltas: (held, bytes).
+    dictionary: tuple[tuple[int, int, str], bytes] | None = None
 
     @property
     def current(self) -> bool:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import random
+from collections import OrderedDict
 from collections.abc import Sequence
 
 from sdfr import auth, wire
@@ -26,8 +27,8 @@ from sdfr.protocol.config import (
     CoreConfig,
     Outgoing,
 )
-from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _Ping
-from sdfr.wire import WANT_ALL, Discovery, Origin, Update
+from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _GroupPing, _Ping
+from sdfr.wire import WANT_ALL, WIRE_COMPACT, WIRE_FULL, Alive, Discovery, Origin, Update
 
 
 class CoreState:
@@ -84,9 +85,21 @@ class CoreState:
         self._challenge_budget = TokenBucket(CHALLENGE_RATE, CHALLENGE_BURST)
         self._plain_budget = TokenBucket(PLAIN_RATE, PLAIN_BURST)
         self._own_challenge_at = -math.inf
-        self._parts_cache: tuple[tuple[int, int, str, str], list[bytes]] | None = None
-        #: The set every robot in range last heard by multicast: the base of the next delta.
-        self._announced: tuple[int, tuple[Service, ...]] | None = None
+        self._parts_cache: tuple[tuple[int, int, str, str, bool], list[bytes]] | None = None
+        #: The set every robot in range last heard by multicast, (version, services, digest):
+        #: what everything we send names as ours and serves (a change not announced yet is
+        #: not told of by a beacon or a ping, so nobody fetches a set that is about to come),
+        #: and the base of the next delta.  None before `start`.
+        self._announced: tuple[int, tuple[Service, ...], str] | None = None
+        #: Sets announced lately, by version: a robot that missed a change is sent what
+        #: changed since the set it holds.
+        self._recent: OrderedDict[int, tuple[Service, ...]] = OrderedDict()
+        self._last_change_sent = -math.inf
+        self._dictionary_cache: tuple[int, bytes] | None = None
+        #: Beacons sent as pings, by sequence number.
+        self._group_pings: dict[int, _GroupPing] = {}
+        #: Address -> the wire version of the peer there (what unicasts to it may be).
+        self._wire_at: dict[Addr, int] = {}
 
     # -- peer bookkeeping ------------------------------------------------------------------
 
@@ -115,6 +128,12 @@ class CoreState:
                 # robot's: it still shows the robot is there, and its answer will tell.
                 self._challenge(peer, src, now)
         peer.last_heard = now
+        if origin is not None and origin.wire != peer.wire:
+            peer.wire = origin.wire
+            if peer.reachable and self._by_beacon(peer):
+                peer.next_ping = math.inf  # its beacon pings stand in for unicast ones now
+        if origin is not None:
+            self._wire_at[src] = origin.wire
         if peer.address != src:
             peer.address = src
             self._dirty.add(peer.robot_id)
@@ -127,7 +146,7 @@ class CoreState:
             # The ping window is kept: the pings lost while the peer was away are part of its
             # link's record, and the window slides them out as new pings settle.
             if peer.proven:
-                peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
+                self._schedule_ping(peer, now)
             self._dirty.add(peer.robot_id)
 
     def _new_boot(self, peer: Peer, origin: Origin) -> None:
@@ -172,6 +191,10 @@ class CoreState:
             f.retry_at = math.inf  # asked once it answers its challenge
             return
         want: wire.Want = f.missing() if f.parts else WANT_ALL
+        have = None
+        if not f.parts and peer.held is not None and peer.held[0] == f.boot_id:
+            # What we hold of the same boot: the answer can be what changed since.
+            have = peer.held[1] if peer.held[1] < f.version else None
         self._send(
             Discovery(
                 self._origin(),
@@ -180,6 +203,7 @@ class CoreState:
                 want=want,
                 want_version=f.version,
                 multicast=False,
+                have=have,
             ),
             peer.address,
         )
@@ -199,12 +223,32 @@ class CoreState:
         self._ping_seq = (self._ping_seq + 1) & 0x7FFFFFFF
         return self._ping_seq
 
+    def _beacon_pings(self) -> bool:
+        """Whether our beacons are also pings (to the peers that answer them, `_by_beacon`)."""
+        return self.config.wire_compact and self.config.ping_interval >= self.config.beacon_interval
+
+    def _by_beacon(self, peer: Peer) -> bool:
+        """Whether `peer` is pinged by our beacons rather than by unicast: it speaks wire 2
+        (so it answers them) and is proven.  One multicast pings the whole fleet, and a round
+        trip costs one datagram each way instead of a unicast ping and its reply."""
+        return self._beacon_pings() and peer.proven and peer.wire >= WIRE_COMPACT
+
+    def _schedule_ping(self, peer: Peer, now: float) -> None:
+        """The first ping to a proven peer that became reachable: a random part of a period
+        away, or none by unicast when beacons ping it."""
+        if self._by_beacon(peer):
+            peer.next_ping = math.inf
+        else:
+            peer.next_ping = now + self.rng.uniform(0.1, 1.0) * self.config.ping_interval
+
     def _new_ping(self, peer: Peer, now: float, dst: Addr, *, challenge: bool = False) -> int:
         """A ping to `peer` at `dst` sent now (its sequence number); the next is a period away."""
         seq = self._next_seq()
         self._pings[seq] = _Ping(peer.robot_id, now, dst, challenge)
         jitter = self.rng.uniform(1 - self.config.jitter, 1.0)
-        if peer.proven:
+        if peer.proven and self._by_beacon(peer):
+            peer.next_ping = math.inf
+        elif peer.proven:
             peer.next_ping = now + self.config.ping_interval * jitter
         else:  # challenged again after a ping timeout until it answers (a lossy link may
             # lose a few round trips in a row; CHALLENGE_RATE bounds what fakes can cost)
@@ -221,19 +265,64 @@ class CoreState:
 
     # -- sending ---------------------------------------------------------------------------
 
+    def _advertised(self) -> tuple[int, tuple[Service, ...], str]:
+        """The set we tell of: the last announced, or before `start` the local one."""
+        if self._announced is None:
+            return self.version, self.services, self.digest
+        return self._announced
+
+    def _announce(self, now: float) -> None:
+        """The local set is announced now: from here on it is what we tell of."""
+        self._announced = (self.version, self.services, self.digest)
+        self._recent[self.version] = self.services
+        self._recent.move_to_end(self.version)
+        while len(self._recent) > max(1, self.config.delta_history):
+            self._recent.popitem(last=False)
+        self._last_change_sent = now
+        self._update_at = math.inf
+
     def _origin(self) -> Origin:
-        return Origin(
-            self.config.fleet, self.config.robot_id, self.boot_id, self.version, self.digest
+        version, _, digest = self._advertised()
+        w = WIRE_COMPACT if self.config.wire_compact else WIRE_FULL
+        return Origin(self.config.fleet, self.config.robot_id, self.boot_id, version, digest, w)
+
+    def _compact_for(self, dst: Addr | None) -> bool:
+        """Whether a datagram to `dst` (None: the multicast group) goes in the compact form:
+        to one peer when it reads it; to the group while every robot in range (and every
+        unproven one heard lately) reads it."""
+        if not self.config.wire_compact:
+            return False
+        if dst is not None:
+            return self._wire_at.get(dst, WIRE_FULL) >= WIRE_COMPACT
+        return all(
+            p.wire >= WIRE_COMPACT for p in self.peers.values() if p.reachable or not p.proven
         )
+
+    def _beacon(self, now: float) -> None:
+        """The beacon; with beacon pings, a ping to every peer that answers them too."""
+        cfg = self.config
+        seq = None
+        if self._beacon_pings():
+            targets = {
+                p.robot_id: p.address
+                for p in self.peers.values()
+                if p.reachable and self._by_beacon(p)
+            }
+            if targets:
+                seq = self._next_seq()
+                self._group_pings[seq] = _GroupPing(now, targets)
+        if self._compact_for(None):  # peers know where we are: no LOCATION, no max-age
+            self._send(Alive(self._origin(), "", 0, seq), None, compact=True)
+        else:
+            self._send(Alive(self._origin(), self.location, cfg.max_age, seq), None, compact=False)
 
     def _beacon_period(self) -> float:
         return self.config.beacon_interval * self.rng.uniform(1 - self.config.jitter, 1.0)
 
     def _search(self, now: float) -> None:
         cfg = self.config
-        self._send(
-            Discovery(self._origin(), wire.fleet_target(cfg.fleet), cfg.mx, want=WANT_ALL), None
-        )
+        search = Discovery(self._origin(), wire.fleet_target(cfg.fleet), cfg.mx, want=WANT_ALL)
+        self._send(search, None, compact=False)  # a multicast search is always a full one
 
     def _flush_replies(self, now: float) -> None:
         """Answer the searches gathered during the reply delay: one multicast serves many.
@@ -257,17 +346,20 @@ class CoreState:
         if targets:
             self._send_update_parts(None, now)
 
-    def _update_parts(self) -> list[bytes]:
-        key = (self.boot_id, self.version, self.digest, self.location)
+    def _update_parts(self, compact: bool = False) -> list[bytes]:
+        """The set we tell of (`_advertised`), in parts."""
+        version, services, digest = self._advertised()
+        key = (self.boot_id, version, digest, self.location, compact)
         if self._parts_cache is None or self._parts_cache[0] != key:
             try:
                 parts = wire.encode_update_parts(
                     self._origin(),
                     self.location,
                     self.config.max_age,
-                    self.services,
+                    services,
                     group=self.config.group,
                     port=self.config.port,
+                    compact=compact,
                 )
                 self.announce_error = None
             except ValueError as exc:
@@ -284,30 +376,51 @@ class CoreState:
         if prev is None or prev[0] >= self.version:
             self._send_update_parts(None, now)
             return
-        old = {s.id: s for s in prev[1]}
-        new_ids = {s.id for s in self.services}
-        added = tuple(s for s in self.services if old.get(s.id) != s)
-        removed = tuple(sid for sid in old if sid not in new_ids)
-        delta = Update(
-            self._origin(),
-            self.location,
-            self.config.max_age,
-            0,
-            1,
-            added,
-            base=prev[0],
-            removed=removed,
-        )
-        try:
-            data = wire.encode(delta, group=self.config.group, port=self.config.port)
-        except ValueError:  # too large for one datagram: the whole set, in parts
+        self._announce(now)
+        compact = self._compact_for(None)
+        data = self._delta(prev[0], prev[1], compact)
+        if data is None:  # too large for one datagram, or no smaller than the whole set
             self._send_update_parts(None, now)
             return
-        if len(data) >= sum(map(len, self._update_parts())):
-            self._send_update_parts(None, now)
-            return
-        self._announced = (self.version, self.services)
         self._emit(data, None, "update")
+
+    def _delta(self, base: int, had: tuple[Service, ...], compact: bool) -> bytes | None:
+        """The datagram turning set `base` (`had`) into the one we tell of; None when it would
+        not fit one datagram, or carry every service of the set anyway (the whole set, which
+        needs no base, is then no bigger)."""
+        old = {s.id: s for s in had}
+        _, services, _ = self._advertised()
+        new_ids = {s.id for s in services}
+        added = tuple(s for s in services if old.get(s.id) != s)
+        if services and len(added) == len(services):
+            return None
+        removed = tuple(sid for sid in old if sid not in new_ids)
+        location, max_age = ("", 0) if compact else (self.location, self.config.max_age)
+        delta = Update(self._origin(), location, max_age, 0, 1, added, base=base, removed=removed)
+        cfg = self.config
+        # Compact: deflated against the base set, which every robot that can apply it holds.
+        dictionary = self._dictionary(base, had) if compact else None
+        try:
+            return wire.encode(
+                delta, group=cfg.group, port=cfg.port, compact=compact, dictionary=dictionary
+            )
+        except ValueError:
+            return None
+
+    def _dictionary(self, version: int, services: tuple[Service, ...]) -> bytes:
+        """`wire.delta_dictionary` of our set `version`, kept for the next delta from it."""
+        if self._dictionary_cache is None or self._dictionary_cache[0] != version:
+            self._dictionary_cache = (version, wire.delta_dictionary(services))
+        return self._dictionary_cache[1]
+
+    def _catch_up(self, have: int, compact: bool) -> bytes | None:
+        """What changed since our set `have`, for a robot that holds it (None: we no longer
+        know that set, or the whole set is as small)."""
+        version, _, _ = self._advertised()
+        had = self._recent.get(have)
+        if had is None or have >= version:
+            return None
+        return self._delta(have, had, compact)
 
     def _send_update_parts(
         self, dst: Addr | None, now: float, only: Sequence[int] | None = None
@@ -316,16 +429,20 @@ class CoreState:
             # A multicast set answers every pending search too.
             self._reply_to.clear()
             self._reply_at = math.inf
-            self._update_at = math.inf
-            self._announced = (self.version, self.services)
+            self._announce(now)
             self._last_set_multicast = now
-        parts = self._update_parts()
+        parts = self._update_parts(self._compact_for(dst))
         for i, data in enumerate(parts):
             if only is None or i in only:
                 self._emit(data, dst, "update")
 
-    def _send(self, msg: wire.Message, dst: Addr | None) -> None:
-        if isinstance(msg, Discovery) and not msg.multicast and dst is not None:
+    def _send(self, msg: wire.Message, dst: Addr | None, *, compact: bool | None = None) -> None:
+        """Encode and send `msg`: compact when `_compact_for(dst)` (or as told)."""
+        if compact is None:
+            compact = self._compact_for(dst)
+        if compact:
+            data = wire.encode(msg, compact=True)
+        elif isinstance(msg, Discovery) and not msg.multicast and dst is not None:
             # A unicast search names the robot it is sent to in HOST.
             data = wire.encode(msg, group=dst[0], port=dst[1])
         else:

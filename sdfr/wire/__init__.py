@@ -12,7 +12,7 @@ and `decode`.
 
 from __future__ import annotations
 
-from sdfr.wire.decode import decode
+from sdfr.wire.decode import decode, unpack_delta
 from sdfr.wire.encode import (
     check_service_fits,
     encode,
@@ -37,12 +37,16 @@ from sdfr.wire.messages import (
     MAX_MX_ACCEPTED,
     MAX_PARTS,
     MAX_SEQ,
+    MAX_UNPACKED,
     MAX_VERSION,
     MESSAGE_TYPES,
+    PACKED,
     REJECT_REASONS,
     SEAL_RESERVE,
     SERVER,
     WANT_ALL,
+    WIRE_COMPACT,
+    WIRE_FULL,
     Alive,
     Byebye,
     Discovery,
@@ -52,6 +56,7 @@ from sdfr.wire.messages import (
     Response,
     Update,
     Want,
+    delta_dictionary,
     fleet_target,
     usn,
 )
@@ -72,12 +77,16 @@ __all__ = [
     "MAX_MX_ACCEPTED",
     "MAX_PARTS",
     "MAX_SEQ",
+    "MAX_UNPACKED",
     "MAX_VERSION",
     "MESSAGE_TYPES",
+    "PACKED",
     "REJECT_REASONS",
     "SEAL_RESERVE",
     "SERVER",
     "WANT_ALL",
+    "WIRE_COMPACT",
+    "WIRE_FULL",
     "Alive",
     "Byebye",
     "Discovery",
@@ -89,11 +98,13 @@ __all__ = [
     "Want",
     "check_service_fits",
     "decode",
+    "delta_dictionary",
     "encode",
     "encode_update_parts",
     "fleet_target",
     "max_service_json_bytes",
     "parts_needed",
     "service_json_size",
+    "unpack_delta",
     "usn",
 ]

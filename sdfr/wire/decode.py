@@ -1,6 +1,9 @@
 """Decoding: the bytes of one datagram to a message, or a `Reject` saying why not.  Never
 raises: a bad datagram is a value."""
 
+import zlib
+from collections.abc import Sequence
+
 from sdfr.errors import ValidationError
 from sdfr.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
 from sdfr.wire.messages import (
@@ -19,8 +22,12 @@ from sdfr.wire.messages import (
     MAX_MX_ACCEPTED,
     MAX_PARTS,
     MAX_SEQ,
+    MAX_UNPACKED,
     MAX_VERSION,
+    PACKED,
     WANT_ALL,
+    WIRE_COMPACT,
+    WIRE_FULL,
     Alive,
     Byebye,
     Discovery,
@@ -32,6 +39,7 @@ from sdfr.wire.messages import (
     Want,
     _is_digest,
     _is_multicast,
+    delta_dictionary,
     fleet_target,
 )
 
@@ -61,6 +69,9 @@ def decode(data: bytes, *, fleet: int | None = None, group: str | None = None) -
 
 
 _FLEET_NEEDLE = b"\nX-SDFR-FLEET:"
+_COMPACT_NEEDLE = b"\nX-SDFR: "
+_COMPACT_METHOD = {"discovery": "M-SEARCH", "response": "200", "alive": "NOTIFY",
+                   "update": "NOTIFY", "byebye": "NOTIFY"}  # fmt: skip
 
 
 def _decode(data: bytes, fleet: int | None, group: str | None) -> Message | Reject:
@@ -83,6 +94,12 @@ def _decode(data: bytes, fleet: int | None, group: str | None) -> Message | Reje
         if at >= 0:
             stop = data.find(b"\n", at + len(_FLEET_NEEDLE), end)
             raw = data[at + len(_FLEET_NEEDLE) : stop if stop >= 0 else end].strip()
+            if 0 < len(raw) <= 3 and raw.isdigit() and int(raw) != fleet:
+                return Reject("other-fleet", f"fleet {int(raw)}, not {fleet}")
+        at = data.find(_COMPACT_NEEDLE, 0, end)
+        if at >= 0:  # X-SDFR: <type> <fleet> ...
+            words = data[at + len(_COMPACT_NEEDLE) : at + len(_COMPACT_NEEDLE) + 20].split(b" ")
+            raw = words[1] if len(words) > 2 else b""
             if 0 < len(raw) <= 3 and raw.isdigit() and int(raw) != fleet:
                 return Reject("other-fleet", f"fleet {int(raw)}, not {fleet}")
 
@@ -120,6 +137,8 @@ def _decode(data: bytes, fleet: int | None, group: str | None) -> Message | Reje
         value = value.strip()
         if setdefault(key, value) != value:
             raise _Rejected("bad-header", f"{key} given twice with different values")
+    if "X-SDFR" in headers:
+        return _decode_compact(method, headers, data[body_start:], fleet)
     sdfr = "X-SDFR-TYPE" in headers or any(key[:7] == "X-SDFR-" for key in headers)
 
     if fleet is not None and sdfr:  # other spellings of the fleet header
@@ -160,7 +179,106 @@ def _decode_search(headers: dict[str, str], sdfr: bool, group: str | None) -> Di
     want_text = headers.get("X-SDFR-WANT")
     want = None if want_text is None else _parse_want(want_text)
     want_version = _optional_int(headers, "X-SDFR-WANT-VERSION", MAX_VERSION)
-    return Discovery(origin, st, mx, seq, want, want_version, multicast)
+    have = _optional_int(headers, "X-SDFR-HAVE", MAX_VERSION)
+    return Discovery(origin, st, mx, seq, want, want_version, multicast, have)
+
+
+def _decode_compact(
+    method: str, headers: dict[str, str], body: bytes, fleet: int | None
+) -> Message | Reject:
+    """A compact datagram (see `sdfr.wire.encode`): the origin in one X-SDFR line."""
+    words = headers["X-SDFR"].split(" ")
+    if len(words) != 6:
+        raise _Rejected("bad-value", f"X-SDFR {headers['X-SDFR'][:80]!r}: not 6 fields")
+    kind, fleet_text, robot_id, boot_text, version_text, digest = words
+    got = _int_value("X-SDFR fleet", fleet_text, 0, MAX_FLEET)
+    if fleet is not None and got != fleet:
+        return Reject("other-fleet", f"fleet {got}, not {fleet}")
+    if _COMPACT_METHOD.get(kind) != method:
+        raise _Rejected("bad-value", f"X-SDFR type {kind[:40]!r} on a {method} datagram")
+    if not ROBOT_ID_RE.fullmatch(robot_id):
+        raise _Rejected("bad-value", f"X-SDFR robot {robot_id[:80]!r}")
+    if not _is_digest(digest):
+        raise _Rejected("bad-value", f"X-SDFR digest {digest[:40]!r}")
+    origin = Origin(
+        got,
+        robot_id,
+        _int_value("X-SDFR boot", boot_text, 0, MAX_BOOT_ID),
+        _int_value("X-SDFR version", version_text, 0, MAX_VERSION),
+        digest,
+        WIRE_COMPACT,
+    )
+    seq = _optional_int(headers, "X-SDFR-SEQ", MAX_SEQ)
+    if kind == "discovery":
+        st = _need(headers, "ST")
+        if not st:
+            raise _Rejected("bad-value", "ST is empty")
+        want_text = headers.get("X-SDFR-WANT")
+        want = None if want_text is None else _parse_want(want_text)
+        want_version = _optional_int(headers, "X-SDFR-WANT-VERSION", MAX_VERSION)
+        have = _optional_int(headers, "X-SDFR-HAVE", MAX_VERSION)
+        return Discovery(origin, st, 0, seq, want, want_version, False, have)
+    if kind == "response":
+        if seq is None:
+            raise _Rejected("missing-header", "X-SDFR-SEQ (a compact response is a ping reply)")
+        st = headers.get("ST") or f"uuid:{robot_id}"
+        return Response(origin, st, "", 0, seq, _optional_int(headers, "X-SDFR-PING", MAX_SEQ))
+    if kind == "byebye":
+        return Byebye(origin)
+    location = headers.get("LOCATION", "")
+    if len(location) > MAX_LOCATION or ("LOCATION" in headers and not location):
+        raise _Rejected("bad-value", f"LOCATION must be 1..{MAX_LOCATION} characters")
+    if kind == "alive":
+        return Alive(origin, location, 0, seq)
+    part_text, base_text = headers.get("X-SDFR-PART"), headers.get("X-SDFR-BASE")
+    if (part_text is None) == (base_text is None):
+        raise _Rejected("bad-value", "a compact update has X-SDFR-PART or X-SDFR-BASE, one")
+    if part_text is not None:
+        part, parts = _decode_part(part_text)
+        if body.startswith(PACKED):
+            body = _inflate(body[len(PACKED) :], None)
+        services, _ = _decode_services(headers, body, delta=False)
+        return Update(origin, location, 0, part, parts, services)
+    assert base_text is not None
+    base = _int_value("X-SDFR-BASE", base_text, 0, MAX_VERSION)
+    if base >= origin.version:
+        raise _Rejected("bad-value", f"X-SDFR-BASE {base} on version {origin.version}")
+    if body.startswith(PACKED):  # only a robot holding the base set can read it
+        return Update(origin, location, 0, 0, 1, (), base, (), body[len(PACKED) :])
+    services, removed = _decode_services(headers, body, delta=True, compact=True)
+    return Update(origin, location, 0, 0, 1, services, base, removed)
+
+
+def _inflate(data: bytes, dictionary: bytes | None) -> bytes:
+    """A packed body's JSON; never more than MAX_UNPACKED bytes of it."""
+    try:
+        d = zlib.decompressobj(-15, zdict=dictionary) if dictionary else zlib.decompressobj(-15)
+        out = d.decompress(data, MAX_UNPACKED + 1)
+        if len(out) > MAX_UNPACKED:
+            raise _Rejected("bad-body", f"inflates to more than {MAX_UNPACKED} bytes")
+        if not d.eof or d.unused_data:
+            raise _Rejected("bad-body", "the deflated body is cut short or has trailing bytes")
+    except zlib.error as exc:
+        raise _Rejected("bad-body", f"not a deflated body: {exc}") from None
+    return out
+
+
+def unpack_delta(
+    msg: Update, base: Sequence[Service], dictionary: bytes | None = None
+) -> Update | Reject:
+    """A packed delta (`Update.packed`) read against its base set `base` (the services of
+    version `msg.base` the reader holds): the same Update with its services and removed ids;
+    a Reject when it does not inflate or parse (the reader's set was not the base after all:
+    the digest check that follows catches the rest).  An unpacked Update comes back as is.
+    `dictionary`: `delta_dictionary(base)` when the caller has it already."""
+    if msg.packed is None:
+        return msg
+    try:
+        body = _inflate(msg.packed, dictionary or delta_dictionary(base))
+        services, removed = _decode_services({}, body, delta=True, compact=True)
+    except _Rejected as rej:
+        return Reject(rej.reason, rej.detail)
+    return Update(msg.origin, msg.location, msg.max_age, 0, 1, services, msg.base, removed)
 
 
 def _decode_response(headers: dict[str, str]) -> Response:
@@ -195,7 +313,7 @@ def _decode_notify(headers: dict[str, str], body: bytes) -> Alive | Update | Bye
     location = _decode_location(headers)
     max_age = _decode_max_age(headers)
     if kind == "alive":
-        return Alive(origin, location, max_age)
+        return Alive(origin, location, max_age, _optional_int(headers, "X-SDFR-SEQ", MAX_SEQ))
     part, parts = _decode_part(_need(headers, "X-SDFR-PART"))
     base_text = headers.get("X-SDFR-BASE")
     if base_text is None:
@@ -234,7 +352,9 @@ def _decode_origin(headers: dict[str, str], kind: str) -> Origin:
         version % CONFIGID_MODULUS
     ):
         raise _Rejected("bad-value", f"CONFIGID.UPNP.ORG {config[:40]!r} does not match version")
-    return Origin(fleet, robot_id, boot_id, version, digest)
+    wire_text = headers.get("X-SDFR-WIRE")
+    wire = WIRE_FULL if wire_text is None else _int_value("X-SDFR-WIRE", wire_text, 1, 9)
+    return Origin(fleet, robot_id, boot_id, version, digest, wire)
 
 
 def _check_usn(headers: dict[str, str], origin: Origin) -> None:
@@ -279,8 +399,10 @@ def _decode_part(value: str) -> tuple[int, int]:
 
 
 def _decode_services(
-    headers: dict[str, str], body: bytes, *, delta: bool
+    headers: dict[str, str], body: bytes, *, delta: bool, compact: bool = False
 ) -> tuple[tuple[Service, ...], tuple[str, ...]]:
+    """The services (and a delta's removed ids) of an Update's body; a compact delta may
+    leave out an empty list."""
     length = headers.get("CONTENT-LENGTH")
     if length is not None:
         want = _int_value("CONTENT-LENGTH", length, 0, MAX_DATAGRAM)
@@ -292,7 +414,7 @@ def _decode_services(
         raise _Rejected("bad-body", f"not JSON: {exc}") from None
     if not isinstance(obj, dict):
         raise _Rejected("bad-body", "body must be a JSON object")
-    items = obj.get("services")
+    items = obj.get("services", [] if compact else None)
     if not isinstance(items, list):
         raise _Rejected("bad-body", '"services" must be a list')
     services: list[Service] = []

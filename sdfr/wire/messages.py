@@ -2,6 +2,7 @@
 
 import ipaddress
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal, NoReturn, TypeAlias
@@ -35,6 +36,10 @@ MAX_MX = 5
 #: Largest MX decode accepts at all.
 MAX_MX_ACCEPTED = 120
 CONFIGID_MODULUS = 2**24
+#: Wire versions: 1 speaks only the full SSDP-style forms; 2 also reads and writes the
+#: compact forms (see `encode`), and says so on its full forms (X-SDFR-WIRE: 2).
+WIRE_FULL = 1
+WIRE_COMPACT = 2
 
 
 def fleet_target(fleet: int) -> str:
@@ -56,6 +61,8 @@ class Origin:
     boot_id: int  # BOOTID.UPNP.ORG, 0 .. 2**31-1
     version: int  # X-SDFR-VERSION, 0 .. 2**53; CONFIGID.UPNP.ORG carries version % 2**24
     digest: str  # X-SDFR-DIGEST, 16 lowercase hex chars (sdfr.model.service_digest)
+    #: The wire version the sender speaks (X-SDFR-WIRE; WIRE_COMPACT for a compact datagram).
+    wire: int = WIRE_FULL
 
 
 WANT_ALL: Literal["all"] = "all"
@@ -76,6 +83,9 @@ class Discovery:
     # encode: HOST is group:port, which must be a multicast address iff this is True;
     # decode: True iff MAN is present and HOST is a multicast address (or the given group).
     multicast: bool = True
+    #: A fetch's X-SDFR-HAVE: the version of the robot's set the fetcher holds (same boot),
+    #: so that the answer can be what changed since rather than the whole set.
+    have: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,15 +122,24 @@ class Update:
     #: `services` added or replaced gives the set of `origin.version`. None: a whole set's part.
     base: int | None = None
     removed: tuple[str, ...] = ()
+    #: A compact delta's body as it came, deflated against the base set (`services` and
+    #: `removed` are then empty): only a robot holding that set can read it, with
+    #: `sdfr.wire.unpack_delta`.  None for every other Update.
+    packed: bytes | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class Alive:
-    """`NOTIFY` with `NTS: ssdp:alive`: the beacon, no body."""
+    """`NOTIFY` with `NTS: ssdp:alive`: the beacon, no body.
+
+    With `seq` it is also a ping to every robot that hears it (X-SDFR-SEQ), each answering
+    with a ping reply of that sequence number.  A compact Alive may leave `location` empty
+    (the robot's address did not change) and has no max-age (0)."""
 
     origin: Origin
     location: str
     max_age: int
+    seq: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,6 +182,13 @@ _HEX = "0123456789abcdef"
 _BODY_OPEN = b'{"services":['
 _BODY_CLOSE = b"]}"
 _BODY_WRAP = len(_BODY_OPEN) + len(_BODY_CLOSE)
+#: A compact Update's body that starts with this byte is raw deflate (RFC 1951) of the JSON
+#: (which always starts with "{"); a delta's against `delta_dictionary` of its base set.
+PACKED = b"Z"
+#: Most bytes a packed body may inflate to (a part's JSON is far smaller): no inflate bomb.
+MAX_UNPACKED = 256 * 1024
+#: Deflate's window: the most of a dictionary it can use.
+_WINDOW = 32768
 
 _JSON_ENCODER = json.JSONEncoder(ensure_ascii=False, allow_nan=False, separators=(",", ":"))
 
@@ -182,6 +208,18 @@ def _is_multicast(host: str) -> bool:
         return ipaddress.ip_address(host).is_multicast
     except ValueError:
         return False
+
+
+def delta_dictionary(services: Sequence[Service]) -> bytes:
+    """What a packed delta is deflated against: its base set's services as JSON, by id.  The
+    sender and a robot holding the base set make the same bytes (the digest vouches for the
+    set): a new service much like the others then takes a few dozen bytes."""
+    blobs = [_JSON_ENCODER.encode(s.to_json()).encode() for s in sorted(services, key=_by_id)]
+    return b",".join(blobs)[-_WINDOW:]
+
+
+def _by_id(service: Service) -> str:
+    return service.id
 
 
 def _is_digest(value: str) -> bool:

@@ -97,7 +97,8 @@ def test_captures_of_three_daemons(fleet_factory: FleetFactory, tmp_path: Path) 
         alive = [r for r in sent if r.robot == robot and r.msg_type == "Alive"]
         assert len(alive) >= 2, f"{robot}: {len(alive)} Alive datagrams"
         assert all(r.multicast and r.dst == "239.255.255.250" for r in alive)
-        assert all(200 <= r.payload_len <= 700 for r in alive), [r.payload_len for r in alive]
+        # (a wire-2 fleet's compact beacons: about 90 bytes; full ones 400-500)
+        assert all(60 <= r.payload_len <= 700 for r in alive), [r.payload_len for r in alive]
         assert all(r.frame_len == r.payload_len + 42 for r in alive)
     assert not analysis.rejects(records)
 

@@ -7,8 +7,9 @@ the robots' multicast datagrams to replay them, floods a robot with fake robots,
 as the victim of a reflection.
 
 - ``send --to IP[:PORT] [--spoof IP[:PORT]] [--repeat N] [--interval S] HEX...``
-- ``capture --match TEXT [--sender IP] [--count N] [--timeout S]``: prints one hex line per
-  datagram received on the SDfR group that contains TEXT (from IP).
+- ``capture --kind KIND [--sender IP] [--count N] [--timeout S]``: prints one hex line per
+  datagram received on the SDfR group that decodes as a message of KIND (``alive``,
+  ``update``, ...: the message class, in either wire form) (from IP).
 - ``flood --to IP --count N [--fleet F] [--net A.B] [--rate R --seconds S]``: N Alives of N
   fake robots, each from its own forged address in A.B.100.1 - A.B.249.250 (the lab's /16,
   away from its robots); with --rate, R a second for S seconds, cycling through them.
@@ -101,9 +102,9 @@ def cmd_capture(args: argparse.Namespace) -> int:
     mreq = struct.pack("4s4s", socket.inet_aton(GROUP), socket.inet_aton("0.0.0.0"))
     sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
     found = 0
-    needle = args.match.encode()
     for data, src in _received(sock, args.timeout):
-        if needle in data and (args.sender is None or src[0] == args.sender):
+        kind = type(wire.decode(data)).__name__.lower()
+        if kind == args.kind and (args.sender is None or src[0] == args.sender):
             print(data.hex(), flush=True)
             found += 1
             if found >= args.count:
@@ -161,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("hex", nargs="+")
     s.set_defaults(fn=cmd_send)
     c = sub.add_parser("capture")
-    c.add_argument("--match", required=True)
+    c.add_argument("--kind", required=True)
     c.add_argument("--sender")
     c.add_argument("--count", type=int, default=1)
     c.add_argument("--timeout", type=float, default=5.0)

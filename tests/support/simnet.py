@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from sdfr import wire
 from sdfr.auth import OPEN, Keyring
 from sdfr.model import Service
 from sdfr.protocol import Addr, Core, CoreConfig
@@ -246,6 +247,29 @@ class SimNet:
                 self._pump(dst)
 
             self._at(t, deliver)
+
+
+def kind_of(data: bytes) -> str:
+    """What a datagram is, in either wire form: "alive", "update" (a whole set's part),
+    "delta", "byebye", "search", "ping", "fetch", "reply" (to a ping), "response" or "reject"."""
+    msg = wire.decode(data)
+    if isinstance(msg, wire.Update):
+        return "update" if msg.base is None else "delta"
+    if isinstance(msg, wire.Discovery):
+        if msg.seq is not None:
+            return "ping"
+        return "fetch" if msg.want is not None and not msg.multicast else "search"
+    if isinstance(msg, wire.Response):
+        return "reply" if msg.seq is not None else "response"
+    return type(msg).__name__.lower()
+
+
+def sent(
+    net: SimNet, name: str, kind: str, since: float = 0.0
+) -> list[tuple[float, bytes, Addr | None]]:
+    """(time, datagram, destination) of every datagram of `kind` (see `kind_of`) a robot sent
+    since `since`."""
+    return [(t, d, dst) for t, d, dst in net.nodes[name].sent if t >= since and kind_of(d) == kind]
 
 
 BEACON = 1.0  # short beacons keep the virtual clock small; every deadline scales with it

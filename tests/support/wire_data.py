@@ -4,6 +4,7 @@ of real datagrams, and edits of a datagram's headers."""
 from __future__ import annotations
 
 import json
+import random
 
 from hypothesis import strategies as st
 
@@ -87,6 +88,22 @@ def realistic_services(n: int) -> list[Service]:
             type="ros2/topic",
             url=f"ros2://robot-7/camera_{i}/image_raw",
             attributes={"encoding": "rgb8", "rate": 30, "frame": f"cam_{i}_link"},
+        )
+        for i in range(n)
+    ]
+
+
+def noisy_services(n: int, seed: int = 0, size: int = 100) -> list[Service]:
+    """Services whose names and urls are random hex (`size` characters of them each): sets
+    that deflate little, unlike `realistic_services`, so a set takes as many parts as its
+    JSON says in either wire form."""
+    rng = random.Random(seed)
+    return [
+        Service(
+            id=f"n{i:04d}",
+            name=rng.randbytes(size // 4).hex(),
+            type="ros2/topic",
+            url=rng.randbytes(size // 4).hex(),
         )
         for i in range(n)
     ]

@@ -24,6 +24,7 @@ from sdfr.wire import (
     MAX_LOCATION,
     SEAL_RESERVE,
     SERVER,
+    WIRE_COMPACT,
     Alive,
     Byebye,
     Discovery,
@@ -406,7 +407,7 @@ def test_max_service_json_bytes_is_tight() -> None:
     """A service of exactly the limit fits with the longest possible headers, one more does not."""
     limit = max_service_json_bytes()
     assert 450 < limit < MAX_ENCODED
-    worst = Origin(255, "r" * 64, 2**31 - 1, 2**53 - 1, "f" * 16)
+    worst = Origin(255, "r" * 64, 2**31 - 1, 2**53 - 1, "f" * 16, WIRE_COMPACT)
     location = "l" * MAX_LOCATION
     group = "ffff:ffff:ffff:ffff:ffff:ffff:ffff:ffff"
     assert len(f"[{group}]:65535") == MAX_HOST

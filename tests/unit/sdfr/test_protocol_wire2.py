@@ -1,0 +1,232 @@
+"""Wire version 2 in virtual time: compact forms and who gets them, beacons that ping the
+fleet, changes told of once announced, bursts gathered within the gap, catch-up deltas, and a
+fleet that mixes in a robot of wire version 1."""
+
+from __future__ import annotations
+
+import statistics
+
+from sdfr import auth, wire
+from sdfr.auth import Keyring
+from sdfr.model import Service
+from tests.support.simnet import BEACON, SimNet, kind_of, sent, services
+
+#: The product's ping: one per beacon period, so beacons are the pings.
+PRODUCT = {"beacon_interval": BEACON, "ping_interval": BEACON}
+
+
+def product_fleet(net: SimNet, n: int, n_services: int = 20, **cfg: object) -> list[str]:
+    names = [f"r{i}" for i in range(1, n + 1)]
+    for name in names:
+        net.add(name, services=services(name, n_services), **{**PRODUCT, **cfg})
+    return names
+
+
+def compact(data: bytes) -> bool:
+    msg = wire.decode(data)
+    return not isinstance(msg, wire.Reject) and msg.origin is not None and b"\r\nX-SDFR: " in data
+
+
+def test_a_fleet_of_wire_2_robots_speaks_compact_and_pings_by_beacon() -> None:
+    net = SimNet(seed=201)
+    names = product_fleet(net, 4)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(3 * BEACON)
+    t0 = net.now
+    window = {n: len(net.nodes["r1"].core.peers[n].pings) for n in names[1:]}
+    net.run_for(10 * BEACON)
+    for name in names:
+        out = [d for t, d, _ in net.nodes[name].sent if t >= t0]
+        assert out and all(compact(d) for d in out)
+        assert sent(net, name, "ping", since=t0) == []  # no unicast ping at all
+        beacons = [wire.decode(d) for _, d, _ in sent(net, name, "alive", since=t0)]
+        assert all(isinstance(b, wire.Alive) and b.seq is not None for b in beacons)
+        # Each robot answers each other's beacons: one reply per peer per beacon.
+        replies = sent(net, name, "reply", since=t0)
+        assert 3 * 10 * 0.9 <= len(replies) <= 3 * 11 + 1
+    r1 = net.nodes["r1"].core
+    for peer in names[1:]:
+        p = r1.peers[peer]
+        assert 9 <= len(p.pings) - window[peer] <= 12  # a round trip a beacon
+        assert p.indicator == 1.0
+        assert p.rtt is not None and 0.002 <= p.rtt <= 0.008  # simnet: 1-4 ms each way
+
+
+def test_beacon_pings_tell_a_silent_death_and_the_loss_of_round_trips() -> None:
+    net = SimNet(seed=202)
+    names = product_fleet(net, 3, ping_window=1000)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(5 * BEACON)
+    before = net.nodes["r1"].core.peers["r3"].indicator
+    net.kill("r3")
+    took = net.wait_until(lambda: not net.sees("r1", "r3") and not net.sees("r2", "r3"), 3.5)
+    assert took <= 3 * BEACON + 0.1
+    after = net.nodes["r1"].core.peers["r3"].indicator
+    assert before == 1.0 and after is not None and after < before
+    # 30 % loss each way between r1 and r2: a round trip gets through 0.7 x 0.7 = 0.49 of
+    # the time, which is what the indicator tells.
+    net.pair_loss[("r1", "r2")] = net.pair_loss[("r2", "r1")] = 0.3
+    p = net.nodes["r1"].core.peers["r2"]
+    p.pings.clear()
+    net.run_for(400 * BEACON)
+    assert p.indicator is not None and abs(p.indicator - 0.49) <= 0.08, p.indicator
+    assert len(p.pings) >= 360
+
+
+def test_a_change_is_told_of_only_once_it_is_announced() -> None:
+    """While a change waits for its announcement, beacons and replies still name the set
+    announced: nobody fetches a set that is about to come by multicast."""
+    net = SimNet(seed=203)
+    names = product_fleet(net, 4, update_gap=0.4)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    t0 = net.now
+    for v in range(2, 40):
+        net.set_services("r1", v, services("r1", 20 + v % 3))
+        net.run_for(0.07 * (1 + v % 4))
+    net.wait_until(lambda: net.all_see_all(names), timeout=1.0)
+    for name in names:
+        assert sent(net, name, "fetch", since=t0) == []
+        assert sent(net, name, "update", since=t0) == []  # no whole set: deltas only
+    # Every datagram r1 sent names a version it announced by then (a delta's own version).
+    told: set[int] = {1}
+    for _, d, _ in net.nodes["r1"].sent:
+        msg = wire.decode(d)
+        assert not isinstance(msg, wire.Reject) and msg.origin is not None
+        if isinstance(msg, wire.Update):
+            told.add(msg.origin.version)
+        assert msg.origin.version in told
+
+
+def test_changes_go_out_at_once_then_at_most_once_a_gap() -> None:
+    net = SimNet(seed=204)
+    names = product_fleet(net, 3, update_gap=0.25)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    r1 = net.nodes["r1"]
+    t0 = net.now
+    net.set_services("r1", 2, services("r1", 21))  # after a quiet spell: at once
+    net.run_for(0.05)
+    net.set_services("r1", 3, services("r1", 22))  # within the gap: gathered ...
+    net.run_for(0.05)
+    net.set_services("r1", 4, services("r1", 23))  # ... with this one
+    net.wait_until(lambda: net.all_see_all(names), timeout=0.5)
+    deltas = [(t, wire.decode(d)) for t, d, _ in sent(net, "r1", "delta", since=t0)]
+    assert [m.origin.version for _, m in deltas if isinstance(m, wire.Update)] == [2, 4]
+    (first, _), (second, _) = deltas
+    assert first - t0 <= r1.core.config.update_coalesce + 1e-9
+    assert 0.25 <= second - first <= 0.25 + 1e-6
+    # Seen everywhere within the product's 500 ms of each change.
+    assert net.now - t0 <= 0.5
+
+
+def test_a_robot_too_far_behind_gets_the_whole_set() -> None:
+    net = SimNet(seed=205)
+    names = product_fleet(net, 3, delta_history=2)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    net.filter = lambda src, dst, data: not (src == "r1" and dst == "r2")
+    for v in range(2, 6):
+        net.set_services("r1", v, services("r1", 20 + v))
+        net.run_for(0.3)
+    net.filter = None
+    t0 = net.now
+    net.wait_until(lambda: net.all_see_all(names), timeout=2 * BEACON)
+    asks = [wire.decode(d) for _, d, _ in sent(net, "r2", "fetch", since=t0)]
+    assert asks and all(isinstance(a, wire.Discovery) and a.have == 1 for a in asks)
+    # r1 keeps only its last 2 sets (4 and 5): version 1 is gone, so the whole set it is.
+    r2 = net.nodes["r2"].addr
+    to_r2 = [kind_of(d) for t, d, dst in net.nodes["r1"].sent if t >= t0 and dst == r2]
+    assert "update" in to_r2 and "delta" not in to_r2
+
+
+def test_a_fleet_mixing_in_a_wire_1_robot_speaks_it_full_forms() -> None:
+    """A robot of wire version 1 rejects compact datagrams as not SDfR (`old` stands for one:
+    it sends only full forms, and the medium drops every compact datagram to it as its
+    decoder would).  The others write to it, and to the group while it is in range, in full
+    forms, and ping it by unicast; among themselves unicasts stay compact.  Once it has left,
+    the group hears compact forms again."""
+    net = SimNet(seed=206)
+    net.filter = lambda src, dst, data: not (dst == "old" and compact(data))
+    names = product_fleet(net, 3)
+    net.add("old", services=services("old", 10), wire_compact=False, **PRODUCT)
+    everyone = [*names, "old"]
+    net.wait_until(lambda: net.all_see_all(everyone), timeout=3.0)
+    net.run_for(2 * BEACON)
+    t0 = net.now
+    for v in range(2, 6):
+        net.set_services("r1", v, services("r1", 20 + v))
+        net.set_services("old", v, services("old", 10 + v))
+        net.run_for(0.6)
+    net.wait_until(lambda: net.all_see_all(everyone), timeout=1.0)
+    net.run_for(3 * BEACON)
+    old = net.nodes["old"].addr
+    for name in names:
+        out = [(d, dst) for t, d, dst in net.nodes[name].sent if t >= t0]
+        assert all(not compact(d) for d, dst in out if dst is None or dst == old)
+        among = [d for d, dst in out if dst is not None and dst != old]
+        assert among and all(compact(d) for d in among)
+        assert sent(net, name, "ping", since=t0)  # old is pinged by unicast
+        assert net.nodes[name].core.peers["old"].indicator == 1.0
+    assert all(not compact(d) for t, d, _ in net.nodes["old"].sent)
+    net.stop("old")
+    net.run_for(BEACON)
+    t1 = net.now
+    net.run_for(2 * BEACON)
+    group = [d for t, d, dst in net.nodes["r1"].sent if t >= t1 and dst is None]
+    assert group and all(compact(d) for d in group)
+
+
+def test_an_unsigned_compact_search_is_no_plain_ssdp_search_in_a_keyed_fleet() -> None:
+    ring = Keyring.of([bytes(range(32))])
+    net = SimNet(seed=207)
+    product_fleet(net, 2, keyring=ring)
+    net.run_for(2 * BEACON)
+    core = net.nodes["r1"].core
+    forged = wire.Origin(1, "r9", 5, 1, "0" * 16, wire.WIRE_COMPACT)
+    search = wire.encode(
+        wire.Discovery(forged, "uuid:r1", 0, want=wire.WANT_ALL, multicast=False), compact=True
+    )
+    was = core.counters.rejects["unsigned"]
+    net.inject("r1", search, ("10.1.0.66", 1900))
+    assert core.counters.rejects["unsigned"] == was + 1
+    assert "r9" not in core.peers
+    # Sealed, the compact forms go through as any other.
+    assert auth.check(net.nodes["r2"].sent[-1][1], ring) is not None
+
+
+def test_a_churning_fleet_stays_within_500ms_and_never_fetches() -> None:
+    """The paper's load in miniature: every robot unpublishes a service every 0-5 s (fresh
+    ids), publishing another in its place; every change is listed on every peer within the
+    product's 500 ms, by multicast deltas alone."""
+    net = SimNet(seed=208)
+    names = product_fleet(net, 4, n_services=30)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    t0 = net.now
+    rng = net.rng
+    version = {n: 1 for n in names}
+    current: dict[str, list[Service]] = {n: list(net.nodes[n].core.services) for n in names}
+    lags: list[float] = []
+    for step in range(120):
+        name = rng.choice(names)
+        svcs = current[name]
+        svcs.pop(rng.randrange(len(svcs)))
+        svcs.append(Service(f"{name}-x{step}", f"publisher {step}", "bench.kind"))
+        version[name] += 1
+        net.set_services(name, version[name], list(svcs))
+        target = sorted(svcs, key=lambda s: s.id)
+        lags.append(
+            net.wait_until(
+                lambda n=name, want=target: all(
+                    sorted(net.nodes[x].core.peers[n].services, key=lambda s: s.id) == want
+                    for x in names
+                    if x != n
+                ),
+                timeout=0.5,
+            )
+        )
+        net.run_for(rng.uniform(0.0, 1.25))
+    assert max(lags) <= 0.5 and statistics.median(lags) < 0.1
+    for name in names:
+        assert sent(net, name, "fetch", since=t0) == []
