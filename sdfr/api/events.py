@@ -18,8 +18,7 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator
 
-from aiohttp import web
-
+from sdfr.api.http import Request, Response, StreamResponse
 from sdfr.api.replies import RequestError, json_response
 from sdfr.api.state import state_of
 from sdfr.errors import ValidationError
@@ -70,13 +69,18 @@ class EventHub:
         news, self._news = self._news, asyncio.Event()
         news.set()
 
-    async def closing(self, timeout: float) -> bool:
-        """Wait up to `timeout` seconds for the server to stop; True when it does."""
+    async def closing(self, timeout: float, gone: asyncio.Event | None = None) -> bool:
+        """Wait up to `timeout` seconds for the server to stop (or `gone` to be set: the
+        client went away); True when either happened."""
+        waits = [asyncio.ensure_future(self._closing.wait())]
+        if gone is not None:
+            waits.append(asyncio.ensure_future(gone.wait()))
         try:
-            await asyncio.wait_for(self._closing.wait(), timeout)
-        except asyncio.TimeoutError:
-            return False
-        return True
+            done, _ = await asyncio.wait(waits, timeout=timeout, return_when="FIRST_COMPLETED")
+        finally:
+            for w in waits:
+                w.cancel()
+        return bool(done)
 
     def close(self) -> None:
         """The server stops: every stream ends."""
@@ -149,14 +153,14 @@ def _event_id(name: str, raw: str | None) -> int | None:
     return int(raw)
 
 
-def _after(request: web.Request) -> int | None:
+def _after(request: Request) -> int | None:
     """Where to start: the Last-Event-ID header (a reconnecting EventSource's), else `since`."""
     since = _event_id("since", request.query.get("since"))
     header = _event_id("Last-Event-ID", request.headers.get("Last-Event-ID"))
     return header if header is not None else since
 
 
-def _kinds(request: web.Request) -> frozenset[str] | None:
+def _kinds(request: Request) -> frozenset[str] | None:
     names = request.query.getall("event", [])
     if not names:
         return None
@@ -170,7 +174,7 @@ def _sse(event: StoredEvent) -> bytes:
     return f"id: {event.id}\nevent: {event.kind}\ndata: {event.body}\n\n".encode()
 
 
-async def events(request: web.Request) -> web.StreamResponse:
+async def events(request: Request) -> Response:
     """GET /events: a stream of Server-Sent Events when the client accepts
     text/event-stream, else the events after `since` at once, as JSON."""
     for key in request.query:
@@ -195,7 +199,7 @@ async def events(request: web.Request) -> web.StreamResponse:
         raise RequestError(
             503, f"{STREAMS_MAX} event streams are open already; close one", "events"
         )
-    resp = web.StreamResponse(
+    resp = StreamResponse(
         headers={
             "Content-Type": f"{SSE}; charset=utf-8",
             "Cache-Control": "no-cache",

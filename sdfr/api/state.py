@@ -16,9 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from aiohttp import web
-
 from sdfr import procfs, wire
+from sdfr.api.http import AppKey, Request, Response
 from sdfr.api.replies import Handler, json_bytes
 from sdfr.config import Config, location_max_len
 from sdfr.model import PeerRecord, Service
@@ -372,23 +371,21 @@ class ApiState:
         return self.view.store
 
 
-STATE = web.AppKey("sdfr_state", ApiState)
+STATE = AppKey("sdfr_state", ApiState)
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 
-def state_of(request: web.Request) -> ApiState:
+def state_of(request: Request) -> ApiState:
     return request.app[STATE]
 
 
-@web.middleware
-async def measure(request: web.Request, handler: Handler) -> web.StreamResponse:
+async def measure(request: Request, handler: Handler) -> Response:
     start = time.perf_counter()
     try:
         return await handler(request)
     finally:
-        resource = request.match_info.route.resource
-        if resource is not None:
-            key = (request.method, resource.canonical)
+        if request.route is not None:
+            key = (request.method, request.route)
         else:  # bound the label sets whatever clients send
             method = request.method if request.method in _METHODS else "OTHER"
             key = (method, "unmatched")

@@ -17,9 +17,7 @@ import socket
 import sys
 from pathlib import Path
 
-from aiohttp import web
-
-from sdfr.api import STATE, ApiState, Runner, create_app
+from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app
 from sdfr.config import Config, from_args, split_hostport
 from sdfr.daemon import logs, notify
 from sdfr.errors import ConfigError
@@ -68,17 +66,17 @@ def _clear_stale_socket(path: Path) -> None:
     raise StartError(f"{path}: another API layer is serving this state directory")
 
 
-async def _start_tcp(runner: web.AppRunner, flag: str, value: str) -> None:
+async def _start_tcp(runner: Runner, flag: str, value: str) -> None:
     host, port = split_hostport(flag, value)
     try:
-        await web.TCPSite(runner, host, port).start()
+        await TCPSite(runner, host, port).start()
     except OSError as exc:
         raise _bind_error(flag.replace("_", "-"), value, exc) from None
 
 
 async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
     """Serve until `stop` is set."""
-    access_log = logging.getLogger("aiohttp.access") if cfg.log_level == "debug" else None
+    access_log = logging.getLogger("sdfr.api.access") if cfg.log_level == "debug" else None
     app = create_app(cfg, store)
     runner = Runner(app, access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT)
     sock_path = api_socket_path(cfg.state_dir)
@@ -89,7 +87,7 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
         await _start_tcp(runner, "api", cfg.api)
         _clear_stale_socket(sock_path)
         try:
-            await web.UnixSite(runner, str(sock_path)).start()
+            await UnixSite(runner, str(sock_path)).start()
         except OSError as exc:
             raise StartError(f"{sock_path}: cannot listen: {exc.strerror or exc}") from None
         sock_bound = True

@@ -10,8 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from aiohttp import web
-from aiohttp.test_utils import TestClient
+from aiohttp import ClientSession
 
 from sdfr.api import STATE, create_app
 from sdfr.config import Config
@@ -21,7 +20,7 @@ from sdfr.store import EVENT_LOG_MAX, Store
 from tests.support.api import ApiLayer, aio, serve, status
 from tests.unit.sdfr.test_api import FLEET, peer
 
-Client = TestClient[web.Request, web.Application]
+Client = ClientSession
 SSE = {"Accept": "text/event-stream"}
 
 
