@@ -77,14 +77,6 @@ def _prctl(option: int, arg: int | bytes) -> None:
     libc.prctl(option, arg, 0, 0, 0)
 
 
-def _without_tls() -> None:
-    """The daemon speaks no TLS: keep asyncio from loading `ssl` (it maps libssl and
-    libcrypto, about 4 MiB a process tree) just to offer it. Only for sdfrd's own process,
-    before anything imports asyncio; a program that imports sdfr keeps its ssl."""
-    if "ssl" not in sys.modules and "asyncio" not in sys.modules:
-        sys.modules["ssl"] = None  # type: ignore[assignment]
-
-
 def preload() -> dict[str, Main]:
     """Import both layers now, so that the forked layers share these pages, and move what
     exists to the collector's permanent generation (no collection writes to them)."""
@@ -409,7 +401,6 @@ class Supervisor:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _without_tls()
     logs.setup("sdfrd %(levelname)s %(message)s")
     try:
         cfg = resolve(from_args(argv))
