@@ -49,6 +49,7 @@ class EventHub:
         self._ring_from = self.last_id
         self._news = asyncio.Event()
         self._closing = asyncio.Event()
+        self._listened = asyncio.Event()  # set while streams are open: the poll runs
         self.streams = 0
         self.reads = 0  # queries of the log made by the hub (for the benchmark)
 
@@ -86,10 +87,23 @@ class EventHub:
         """The server stops: every stream ends."""
         self._closing.set()
         self._news.set()
+        self._listened.set()
+
+    def opened(self) -> None:
+        """A stream starts following the log."""
+        self.streams += 1
+        self._listened.set()
+
+    def closed(self) -> None:
+        self.streams -= 1
+        if not self.streams:
+            self._listened.clear()
 
     async def poll(self) -> None:
-        """Wake the hub once a POLL while anyone listens (a lost wake-up costs 1 s at most)."""
+        """Wake the hub once a POLL while anyone listens (a lost wake-up costs 1 s at most);
+        while nobody does, sleep until someone does (an idle API has no timer of its own)."""
         while not self._closing.is_set():
+            await self._listened.wait()
             await asyncio.sleep(POLL)
             if self.streams:
                 self.wake()
@@ -206,7 +220,7 @@ async def events(request: Request) -> Response:
             "X-Accel-Buffering": "no",
         }
     )
-    hub.streams += 1
+    hub.opened()
     try:
         await resp.prepare(request)
         await resp.write(b"retry: 1000\n\n")
@@ -218,7 +232,7 @@ async def events(request: Request) -> Response:
     except ConnectionError:  # the client went away
         pass
     finally:
-        hub.streams -= 1
+        hub.closed()
     with contextlib.suppress(ConnectionError):
         await resp.write_eof()
     return resp

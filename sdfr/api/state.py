@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -34,8 +35,8 @@ from sdfr.store import (
 log = logging.getLogger("sdfr.api")
 
 
-#: A heartbeat older than this means the discovery layer is down (it writes one every second).
-HEARTBEAT_STALE = 3.0
+#: A heartbeat older than this means the discovery layer is down (it sends one every 2 s).
+HEARTBEAT_STALE = 5.0
 #: Upper bounds (seconds) of the API latency histogram's buckets.
 LATENCY_BUCKETS = (
     0.0001,
@@ -61,8 +62,9 @@ FAILING_AFTER = 3
 # -- discovery notification --------------------------------------------------------------------
 
 
-def notify_discovery(state_dir: Path) -> None:
-    """Wake the discovery layer so it announces a change of the local services at once.
+def notify_discovery(state_dir: Path, what: bytes = b"services\n") -> None:
+    """Wake the discovery layer so it announces a change of the local services at once (or,
+    `b"status\n"`, sends its status now).
 
     Best effort: when discovery is down it is told nothing, and it polls the version anyway.
     """
@@ -70,7 +72,7 @@ def notify_discovery(state_dir: Path) -> None:
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
         sock.setblocking(False)
         try:
-            sock.sendto(b"services\n", path)
+            sock.sendto(what, path)
         except (FileNotFoundError, ConnectionRefusedError, BlockingIOError):
             pass
         except OSError as exc:
@@ -335,23 +337,41 @@ class ApiState:
     def discovery(self) -> DiscoveryState:
         """The discovery layer's latest status: the one it sent over STATUS_SOCKET while that
         is fresh, else the file it writes (which survives a restart of this layer)."""
+        self._decode_live()
         live = self.live_status
         if live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE:
             return discovery_state(live)
         return discovery_state(DiscoveryStatus.from_json(self.store.read_status()))
 
+    def _decode_live(self) -> None:
+        """Decode the last whole status datagram, if one came since (decoded only when
+        needed: asked for, or a heartbeat to apply to it)."""
+        if self.live_raw is not None:
+            raw, self.live_raw = self.live_raw, None
+            try:
+                record = DiscoveryStatus.from_json(json.loads(raw))
+            except ValueError:
+                record = None
+            if record is not None:
+                self.live_status = record
+
     def take_status(self, data: bytes) -> None:
-        """A datagram from the discovery layer: its status, or news in the event log."""
+        """A datagram from the discovery layer: its status (kept as it came, decoded when
+        asked for), or news in the event log."""
         if data == b"events\n":
             if self.hub is not None:
                 self.hub.wake()
             return
-        try:
-            record = DiscoveryStatus.from_json(json.loads(data))
-        except ValueError:
+        if data.startswith(b"beat "):  # nothing changed but the counters: still alive
+            parts = data.split()
+            self._decode_live()
+            live = self.live_status
+            if live is not None and len(parts) == 3:
+                with contextlib.suppress(ValueError):
+                    if int(parts[1]) == live.pid:
+                        self.live_status = dataclasses.replace(live, heartbeat=float(parts[2]))
             return
-        if record is not None:
-            self.live_status = record
+        self.live_raw = data
 
     cfg: Config
     view: StoreView
@@ -361,6 +381,8 @@ class ApiState:
     #: The last failed write of the state directory (time, reason, message), until one works.
     write_problem: tuple[float, str, str] | None = None
     live_status: DiscoveryStatus | None = None
+    #: The discovery layer's last status datagram, not decoded yet.
+    live_raw: bytes | None = None
     #: GET /events (sdfr.api.events.EventHub) and the lease timer (sdfr.api.leases.Leases);
     #: set by create_app.
     hub: Any = None

@@ -17,7 +17,7 @@ import socket
 import sys
 from pathlib import Path
 
-from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app
+from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app, notify_discovery
 from sdfr.config import Config, from_args, split_hostport
 from sdfr.daemon import logs, notify
 from sdfr.errors import ConfigError
@@ -106,11 +106,15 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
                 sock_path.unlink()
 
 
+#: The layer's tick (seconds): its beat to the supervisor.
+BEAT_PERIOD = 2.0
+
+
 async def _beat() -> None:
     """The heartbeat the supervisor watches: from the event loop, so a hung loop stops it."""
     while True:
         notify.beat()
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(BEAT_PERIOD)
 
 
 class _StatusListener:
@@ -134,6 +138,8 @@ class _StatusListener:
         sock.setblocking(False)
         asyncio.get_running_loop().add_reader(sock.fileno(), self._read)
         self.sock = sock
+        # The discovery layer sends its status every 2 s: ask for it now.
+        notify_discovery(self.path.parent, b"status\n")
 
     def _read(self) -> None:
         assert self.sock is not None

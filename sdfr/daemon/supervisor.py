@@ -53,8 +53,11 @@ log = logging.getLogger("sdfrd")
 LAYERS = {"api": "sdfr.daemon.apiserver", "discovery": "sdfr.daemon.discovery"}
 #: A layer's name in `ps -o comm` and /proc/PID/comm (at most 15 bytes).
 COMM = {"api": "sdfrd-api", "discovery": "sdfrd-discovery"}
+#: When set (a directory), each layer runs under cProfile and writes
+#: DIR/<layer>-<pid>.pstats when it ends: where a layer's CPU goes (bench.footprint uses it).
+PROFILE_ENV = "SDFR_PROFILE"
 #: How often (seconds) the supervisor looks at beats it has not been woken for.
-CHECK_EVERY = 2.0
+CHECK_EVERY = 5.0
 STOP_GRACE = 5.0
 BACKOFF_MAX = 5.0
 STABLE_AFTER = 30.0
@@ -86,6 +89,20 @@ def preload() -> dict[str, Main]:
     gc.collect()
     gc.freeze()
     return mains
+
+
+def _run_main(layer: Layer, args: list[str]) -> int:
+    """The layer's main, under cProfile when PROFILE_ENV names a directory."""
+    where = os.environ.get(PROFILE_ENV)
+    if not where:
+        return layer.main(args)
+    import cProfile
+
+    profile = cProfile.Profile()
+    try:
+        return profile.runcall(layer.main, args)
+    finally:
+        profile.dump_stats(str(Path(where) / f"{layer.name}-{os.getpid()}.pstats"))
 
 
 class Child:
@@ -239,7 +256,7 @@ class Supervisor:
             root = logging.getLogger()
             for handler in root.handlers[:]:  # the layer sets up its own format
                 root.removeHandler(handler)
-            code = layer.main(list(self.args))
+            code = _run_main(layer, list(self.args))
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
         except BaseException:
