@@ -473,6 +473,17 @@ class _Connection:
         except HttpError as exc:  # the body could not be read
             self.keep_alive = False
             response = runner.error_answer(exc.status, exc.message)
+        except RouteError as exc:  # (no middleware answered it)
+            response = runner.error_answer(exc.status, REASONS[exc.status])
+            if exc.allow:
+                response.headers["Allow"] = ",".join(exc.allow)
+        except ConnectionError:
+            raise
+        except Exception:
+            log.exception("%s %s failed", request.method, request.path)
+            if request._body is None and request.body_exists:
+                self.keep_alive = False
+            response = runner.error_answer(500, "internal error")
         if response.force_close:
             self.keep_alive = False
         if not response.prepared:
