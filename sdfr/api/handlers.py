@@ -504,6 +504,7 @@ def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
 async def keys_list(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     return json_response(_keys_json(state, _load_keyring(state)))
 
 
@@ -519,6 +520,7 @@ async def _one_text_field(request: Request, name: str, shape: str) -> str:
 async def keys_install(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     text = await _one_text_field(request, "key", '"<base64 of 32 bytes>"')
     try:
         key = keystore.parse_key(text, "key")
@@ -535,6 +537,7 @@ async def keys_install(request: Request) -> Response:
 async def keys_use(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     kid = request.match_info["id"]
     stored = keystore.use(_load_keyring(state), kid)
     _save_keyring(state, stored, f"signing with key {kid}")
@@ -553,6 +556,7 @@ async def keys_remove(request: Request) -> Response:
 async def keys_mode(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     mode = await _one_text_field(request, "mode", '"accept" | "sign" | "enforce"')
     stored = keystore.set_mode(_load_keyring(state), mode)
     _save_keyring(state, stored, f"mode {mode}")

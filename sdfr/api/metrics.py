@@ -200,5 +200,7 @@ def _process_metrics(
 
 
 async def metrics(request: Request) -> Response:
-    body = metrics_text(state_of(request)).encode()
+    state = state_of(request)
+    await state.fresh_counters()
+    body = metrics_text(state).encode()
     return Response(body=body, headers={"Content-Type": CONTENT_TYPE})

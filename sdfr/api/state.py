@@ -37,6 +37,10 @@ log = logging.getLogger("sdfr.api")
 
 #: A heartbeat older than this means the discovery layer is down (it sends one every 2 s).
 HEARTBEAT_STALE = 5.0
+#: Counters older than this are asked for again before /metrics or /keys shows them (seconds).
+COUNTERS_FRESH = 0.5
+#: The longest such an answer waits for the discovery layer's status (seconds).
+STATUS_WAIT = 0.25
 #: Upper bounds (seconds) of the API latency histogram's buckets.
 LATENCY_BUCKETS = (
     0.0001,
@@ -62,9 +66,9 @@ FAILING_AFTER = 3
 # -- discovery notification --------------------------------------------------------------------
 
 
-def notify_discovery(state_dir: Path, what: bytes = b"services\n") -> None:
+def notify_discovery(state_dir: Path, what: bytes = b"services\n") -> bool:
     """Wake the discovery layer so it announces a change of the local services at once (or,
-    `b"status\n"`, sends its status now).
+    `b"status\n"`, sends its status now); whether the datagram went.
 
     Best effort: when discovery is down it is told nothing, and it polls the version anyway.
     """
@@ -74,9 +78,11 @@ def notify_discovery(state_dir: Path, what: bytes = b"services\n") -> None:
         try:
             sock.sendto(what, path)
         except (FileNotFoundError, ConnectionRefusedError, BlockingIOError):
-            pass
+            return False
         except OSError as exc:
             log.warning("cannot notify the discovery layer at %s: %s", path, exc)
+            return False
+    return True
 
 
 # -- discovery status --------------------------------------------------------------------------
@@ -372,6 +378,26 @@ class ApiState:
                         self.live_status = dataclasses.replace(live, heartbeat=float(parts[2]))
             return
         self.live_raw = data
+        self.live_at = time.monotonic()
+        if self.live_came is not None:
+            self.live_came.set()
+
+    async def fresh_counters(self) -> None:
+        """Make the discovery layer's counters current before answering with them (/metrics,
+        /keys): its whole status comes only when more than its counters changed, or every
+        5 ticks. If the last whole one is older than COUNTERS_FRESH, ask for one now
+        (b"status" on discovery.sock) and wait for it up to STATUS_WAIT; a discovery layer
+        that does not answer leaves the last one (and /health says why)."""
+        if time.monotonic() - self.live_at < COUNTERS_FRESH:
+            return
+        came = self.live_came = asyncio.Event()
+        try:
+            if notify_discovery(self.cfg.state_dir, b"status\n"):  # (else none is listening)
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(came.wait(), STATUS_WAIT)
+        finally:
+            if self.live_came is came:
+                self.live_came = None
 
     cfg: Config
     view: StoreView
@@ -383,6 +409,9 @@ class ApiState:
     live_status: DiscoveryStatus | None = None
     #: The discovery layer's last status datagram, not decoded yet.
     live_raw: bytes | None = None
+    #: When the last whole status datagram came (monotonic), and who waits for the next.
+    live_at: float = -1e9
+    live_came: asyncio.Event | None = None
     #: GET /events (sdfr.api.events.EventHub) and the lease timer (sdfr.api.leases.Leases);
     #: set by create_app.
     hub: Any = None
