@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper netlab image compose-up compose-down clean distclean
+.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper bench-footprint bench-scale netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -48,6 +48,22 @@ bench: $(STAMP)
 	$(MAKE) --no-print-directory bench-auth
 	$(MAKE) --no-print-directory bench-flood
 	$(MAKE) --no-print-directory bench-traffic
+	$(MAKE) --no-print-directory bench-footprint
+	$(BIN)/python -m bench.scale --quick --robots 10,50 --out runs/bench-scale-quick.json --plot runs/scale-growth-quick.png
+
+# What one sdfrd costs a robot: RSS, PSS, USS and PSS alone of each process with 100 services
+# published and 20 peers known; idle CPU of 7 robots x 10 services at the 10 s beacon, with
+# python-zeroconf doing the same job in the same lab (~6 min; root). runs/bench-footprint.json.
+bench-footprint: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.footprint --profile > /dev/null
+
+# 10, 50 and 100 robots with real daemons in one lab (scenario scale-100), 2 minutes of stay
+# each: set-up, convergence, CPU and PSS per daemon, bytes per robot on the air, and how they
+# grow with n (~12 min; root). runs/bench-scale.json and docs/scale-growth.png.
+bench-scale: $(STAMP)
+	mkdir -p runs
+	$(BIN)/python -m bench.scale > /dev/null
 
 # What GET /events costs: the event log's append and size, change -> subscriber latency for
 # 1, 16 and 64 streams, the API layer's CPU (~30 s); JSON in runs/bench-events.json.

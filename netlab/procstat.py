@@ -12,6 +12,7 @@ memory they really take; RSS counts shared pages once per process.
 from __future__ import annotations
 
 import os
+import struct
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ from typing import Any
 
 from sdfr import procfs
 
-__all__ = ["Usage", "children", "tree", "window"]
+__all__ = ["Memory", "Usage", "children", "frames", "memory", "rollup", "tree", "window"]
 
 _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 _PAGE_KB = (os.sysconf("SC_PAGE_SIZE") // 1024) if hasattr(os, "sysconf") else 4
@@ -82,3 +83,99 @@ def window(start: Usage, end: Usage) -> dict[str, Any]:
         "pss_mib": round(end.pss_kb / 1024, 1),
         "processes": end.processes,
     }
+
+
+@dataclass(frozen=True)
+class Memory:
+    """One process's memory now (KiB): RSS, PSS and USS (its private pages) from the kernel,
+    and `alone`, its share of the pages when only the processes it was measured with (its
+    daemon's tree) count (see `memory`)."""
+
+    pid: int
+    rss_kb: int
+    pss_kb: int
+    uss_kb: int
+    alone_kb: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "pid": self.pid,
+            "rss_mib": round(self.rss_kb / 1024, 2),
+            "pss_mib": round(self.pss_kb / 1024, 2),
+            "uss_mib": round(self.uss_kb / 1024, 2),
+            "alone_mib": round(self.alone_kb / 1024, 2),
+        }
+
+
+def rollup(pid: int, proc: Path = Path("/proc")) -> dict[str, int]:
+    """/proc/PID/smaps_rollup as {field: KiB} ({} when the process is gone)."""
+    out: dict[str, int] = {}
+    try:
+        text = (proc / str(pid) / "smaps_rollup").read_text()
+    except OSError:
+        return out
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[2] == "kB":
+            out[parts[0].rstrip(":")] = int(parts[1])
+    return out
+
+
+_PRESENT = 1 << 63
+_PFN_MASK = (1 << 55) - 1
+
+
+def frames(pid: int, proc: Path = Path("/proc")) -> set[int] | None:
+    """The physical page frames `pid` maps now (None: unreadable, e.g. not root).
+
+    /proc/PID/pagemap gives each virtual page's frame number to root only (zeros otherwise).
+    """
+    base = proc / str(pid)
+    found: set[int] = set()
+    try:
+        maps = (base / "maps").read_text().splitlines()
+        with (base / "pagemap").open("rb", buffering=0) as pagemap:
+            for line in maps:
+                span, _, rest = line.partition(" ")
+                if rest.rstrip().endswith("[vsyscall]"):
+                    continue
+                lo, _, hi = span.partition("-")
+                start, end = int(lo, 16) // 4096, int(hi, 16) // 4096
+                pagemap.seek(start * 8)
+                data = pagemap.read((end - start) * 8)
+                for (entry,) in struct.iter_unpack("<Q", data):
+                    if entry & _PRESENT:
+                        found.add(entry & _PFN_MASK)
+    except OSError:
+        return None
+    if found == {0}:
+        return None  # frame numbers hidden: not root
+    return found
+
+
+def memory(pids: Iterable[int], proc: Path = Path("/proc")) -> list[Memory]:
+    """RSS, PSS, USS of each process, and its PSS as if only `pids` ran on the machine.
+
+    The kernel's PSS divides a page shared by k processes by k, whatever they are: the
+    same daemon's PSS falls when other Python programs run beside it (they share the
+    interpreter's pages). `alone` divides only among `pids` (a daemon's tree): the memory
+    the daemon takes on a machine where nothing else maps those pages; the sum over a tree
+    is the number of distinct pages it maps. It is 0 when frames cannot be read (not root).
+    """
+    pids = list(pids)
+    sets = {pid: frames(pid, proc) for pid in pids}
+    count: dict[int, int] = {}
+    for found in sets.values():
+        for frame in found or ():
+            count[frame] = count.get(frame, 0) + 1
+    page_kb = _PAGE_KB
+    out = []
+    for pid in pids:
+        r = rollup(pid, proc)
+        if not r:
+            continue
+        found = sets[pid]
+        alone = 0.0 if found is None else sum(1.0 / count[f] for f in found) * page_kb
+        uss = r.get("Private_Clean", 0) + r.get("Private_Dirty", 0)
+        out.append(Memory(pid, r.get("Rss", 0), r.get("Pss", 0), uss, round(alone)))
+    return out

@@ -161,7 +161,7 @@ class NamespaceKind(RobotKind):
         kernel.remove_ns(robot.ns)  # its veth goes with it
 
     def argv(self, options: Mapping[str, Any]) -> list[str]:
-        return [sys.executable, "-m", "sdfr.daemon.supervisor", *flags(options)]
+        return [sys.executable, "-m", "sdfr.daemon", *flags(options)]
 
     def spawn(self, lab: str, robot: Robot, options: Mapping[str, Any]) -> Started:
         argv = self.argv(options)

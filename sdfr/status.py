@@ -1,15 +1,17 @@
 """The discovery layer's status, as the API layer reads it: one typed, versioned record.
 
-The discovery layer writes it every second (STATE_DIR/discovery-status.json, and a datagram
-on STATE_DIR/status.sock); the API layer answers /health, /self, /metrics and /keys from it.
-`to_json` and `DiscoveryStatus.from_json` are the only ways in and out: what one layer
-writes, the other reads with the same field names and types. A record of another FORMAT, or
-one that does not decode, reads as None (the discovery layer is then taken to be down).
+The discovery layer sends it every STATUS_PERIOD (2 s) as a datagram on STATE_DIR/status.sock,
+and writes it to STATE_DIR/discovery-status.json when it changed or every half a minute; the
+API layer answers /health, /self, /metrics and /keys from it. `to_json` and
+`DiscoveryStatus.from_json` are the only ways in and out: what one layer writes, the other
+reads with the same field names and types. A record of another FORMAT, or one that does not
+decode, reads as None (the discovery layer is then taken to be down).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import types
 import typing
 from dataclasses import dataclass, field
@@ -138,6 +140,15 @@ def decode(kind: type[T], obj: object) -> T:
     return typing.cast(T, _value(kind, obj))
 
 
+@functools.cache
+def _fields(kind: type) -> tuple[tuple[str, Any], ...]:
+    """A dataclass's (field name, resolved type) pairs: typing.get_type_hints compiles and
+    evaluates every annotation, too slow to repeat for each record (it was the API layer's
+    largest idle cost when done once a second)."""
+    hints = typing.get_type_hints(kind)
+    return tuple((f.name, hints[f.name]) for f in dataclasses.fields(kind))
+
+
 def _value(hint: Any, obj: object) -> object:
     origin = get_origin(hint)
     if origin in (typing.Union, types.UnionType):
@@ -154,12 +165,7 @@ def _value(hint: Any, obj: object) -> object:
     if dataclasses.is_dataclass(hint) and isinstance(hint, type):
         if not isinstance(obj, dict):
             raise TypeError(f"{hint.__name__} must be an object, not {obj!r}")
-        hints = typing.get_type_hints(hint)
-        values = {
-            f.name: _value(hints[f.name], obj[f.name])
-            for f in dataclasses.fields(hint)
-            if f.name in obj
-        }
+        values = {name: _value(kind, obj[name]) for name, kind in _fields(hint) if name in obj}
         return hint(**values)
     if origin is dict:
         key_type, value_type = get_args(hint)

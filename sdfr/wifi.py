@@ -24,6 +24,7 @@ import shlex
 import signal
 import stat
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -54,10 +55,34 @@ def derive_key(secret: str, fleet: int) -> str:
     secret = secret.strip()
     if not secret:
         raise ConfigError("wifi_secret: is empty")
-    raw = hashlib.pbkdf2_hmac(
-        "sha256", secret.encode("utf-8"), ssid_for(fleet).encode("ascii"), KDF_ITERATIONS, 32
-    )
-    return raw.hex()
+    salt = ssid_for(fleet).encode("ascii")
+    return pbkdf2_sha256(secret.encode("utf-8"), salt, KDF_ITERATIONS).hex()
+
+
+def pbkdf2_sha256(password: bytes, salt: bytes, rounds: int) -> bytes:
+    """PBKDF2-HMAC-SHA256, 32 bytes: OpenSSL's through hashlib when it is loaded; else
+    (sdfrd keeps OpenSSL out of its processes, see sdfr.daemon) RFC 8018's single block
+    with CPython's own SHA-256, about half a second for KDF_ITERATIONS, once at start."""
+    if "_hashlib" in sys.modules and sys.modules["_hashlib"] is not None:
+        return hashlib.pbkdf2_hmac("sha256", password, salt, rounds, 32)
+    if len(password) > 64:
+        password = hashlib.sha256(password).digest()
+    key = password.ljust(64, b"\0")
+    inner = hashlib.sha256(bytes(b ^ 0x36 for b in key))
+    outer = hashlib.sha256(bytes(b ^ 0x5C for b in key))
+
+    def prf(data: bytes) -> bytes:
+        i, o = inner.copy(), outer.copy()
+        i.update(data)
+        o.update(i.digest())
+        return o.digest()
+
+    u = prf(salt + b"\0\0\0\1")
+    acc = int.from_bytes(u, "big")
+    for _ in range(rounds - 1):
+        u = prf(u)
+        acc ^= int.from_bytes(u, "big")
+    return acc.to_bytes(32, "big")
 
 
 @dataclass(frozen=True, slots=True)

@@ -127,7 +127,7 @@ def sdfrd_flags(spec: LabSpec) -> frozenset[str]:
         docker.require_image(spec.image)
         run = (docker.binary(), "run", "--rm", "--network", "none")
         return _flags((*run, "--entrypoint", "/opt/sdfr/bin/sdfrd", spec.image, "--help"))
-    return _flags((sys.executable, "-m", "sdfr.daemon.supervisor", "--help"))
+    return _flags((sys.executable, "-m", "sdfr.daemon", "--help"))
 
 
 @cache

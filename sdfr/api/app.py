@@ -1,10 +1,8 @@
-"""The local REST API as an aiohttp application."""
+"""The local REST API as an application of `sdfr.api.http`."""
 
 from __future__ import annotations
 
 import asyncio
-
-from aiohttp import web
 
 from sdfr.api.doors import allowed_hosts, doors
 from sdfr.api.events import EventHub, events
@@ -26,6 +24,7 @@ from sdfr.api.handlers import (
     self_info,
     unpublish,
 )
+from sdfr.api.http import App, Request, Response
 from sdfr.api.leases import Leases
 from sdfr.api.metrics import metrics
 from sdfr.api.openapi import openapi_document
@@ -36,9 +35,9 @@ from sdfr.config import Config
 from sdfr.store import Store
 
 
-def create_app(cfg: Config, store: Store) -> web.Application:
+def create_app(cfg: Config, store: Store) -> App:
     """The local REST API."""
-    app = web.Application(middlewares=[measure, errors_as_json, doors], client_max_size=MAX_BODY)
+    app = App(middlewares=[measure, errors_as_json, doors], max_body=MAX_BODY)
     hub = EventHub(store)
     writer = Writer(cfg.state_dir, committed=hub.wake)
     view = StoreView(store, cfg)
@@ -58,15 +57,15 @@ def create_app(cfg: Config, store: Store) -> web.Application:
     )
     poller: list[asyncio.Task[None]] = []
 
-    async def start(app: web.Application) -> None:
+    async def start(app: App) -> None:
         # Leases that ran out while this layer was down end now; the others are timed.
         leases.load(store.leases())
         poller.append(asyncio.get_running_loop().create_task(hub.poll()))
 
-    async def stop_streams(app: web.Application) -> None:
+    async def stop_streams(app: App) -> None:
         hub.close()  # event streams and holds end, so a stop does not wait for them
 
-    async def close(app: web.Application) -> None:
+    async def close(app: App) -> None:
         leases.close()
         for task in poller:
             task.cancel()
@@ -77,7 +76,7 @@ def create_app(cfg: Config, store: Store) -> web.Application:
     app.on_cleanup.append(close)
     openapi_body = json_bytes(openapi_document())
 
-    async def openapi(request: web.Request) -> web.Response:
+    async def openapi(request: Request) -> Response:
         return json_response(openapi_body)
 
     routes: list[tuple[str, str, Handler]] = [
@@ -103,5 +102,5 @@ def create_app(cfg: Config, store: Store) -> web.Application:
         ("PUT", "/keys/mode", keys_mode),
     ]
     for method, path, handler in routes:
-        app.router.add_route(method, path, handler)
+        app.add_route(method, path, handler)
     return app

@@ -3,10 +3,7 @@ Sec-Fetch-Site) nor names it does not own (Host: DNS rebinding)."""
 
 from __future__ import annotations
 
-import socket
-
-from aiohttp import web
-
+from sdfr.api.http import Request, Response
 from sdfr.api.replies import Handler, RequestError
 from sdfr.api.state import state_of
 from sdfr.config import Config
@@ -20,10 +17,8 @@ _LOCAL_HOSTS = frozenset({"127.0.0.1", "localhost", "::1"})
 # -- who may knock -----------------------------------------------------------------------------
 
 
-def over_unix_socket(request: web.Request) -> bool:
-    transport = request.transport
-    sock = transport.get_extra_info("socket") if transport is not None else None
-    return sock is not None and sock.family == socket.AF_UNIX
+def over_unix_socket(request: Request) -> bool:
+    return request.over_unix
 
 
 def host_name(header: str) -> str:
@@ -40,8 +35,7 @@ def allowed_hosts(cfg: Config) -> frozenset[str]:
     return _LOCAL_HOSTS | {api_host} | {host_name(h) for h in cfg.api_allowed_hosts}
 
 
-@web.middleware
-async def doors(request: web.Request, handler: Handler) -> web.StreamResponse:
+async def doors(request: Request, handler: Handler) -> Response:
     """The write API is for programs on this robot, not for web pages they happen to show.
 
     - Host must be one of this API's own names (else a page on a name that resolves to

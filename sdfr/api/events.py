@@ -18,8 +18,7 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator
 
-from aiohttp import web
-
+from sdfr.api.http import Request, Response, StreamResponse
 from sdfr.api.replies import RequestError, json_response
 from sdfr.api.state import state_of
 from sdfr.errors import ValidationError
@@ -50,6 +49,7 @@ class EventHub:
         self._ring_from = self.last_id
         self._news = asyncio.Event()
         self._closing = asyncio.Event()
+        self._listened = asyncio.Event()  # set while streams are open: the poll runs
         self.streams = 0
         self.reads = 0  # queries of the log made by the hub (for the benchmark)
 
@@ -70,22 +70,40 @@ class EventHub:
         news, self._news = self._news, asyncio.Event()
         news.set()
 
-    async def closing(self, timeout: float) -> bool:
-        """Wait up to `timeout` seconds for the server to stop; True when it does."""
+    async def closing(self, timeout: float, gone: asyncio.Event | None = None) -> bool:
+        """Wait up to `timeout` seconds for the server to stop (or `gone` to be set: the
+        client went away); True when either happened."""
+        waits = [asyncio.ensure_future(self._closing.wait())]
+        if gone is not None:
+            waits.append(asyncio.ensure_future(gone.wait()))
         try:
-            await asyncio.wait_for(self._closing.wait(), timeout)
-        except asyncio.TimeoutError:
-            return False
-        return True
+            done, _ = await asyncio.wait(waits, timeout=timeout, return_when="FIRST_COMPLETED")
+        finally:
+            for w in waits:
+                w.cancel()
+        return bool(done)
 
     def close(self) -> None:
         """The server stops: every stream ends."""
         self._closing.set()
         self._news.set()
+        self._listened.set()
+
+    def opened(self) -> None:
+        """A stream starts following the log."""
+        self.streams += 1
+        self._listened.set()
+
+    def closed(self) -> None:
+        self.streams -= 1
+        if not self.streams:
+            self._listened.clear()
 
     async def poll(self) -> None:
-        """Wake the hub once a POLL while anyone listens (a lost wake-up costs 1 s at most)."""
+        """Wake the hub once a POLL while anyone listens (a lost wake-up costs 1 s at most);
+        while nobody does, sleep until someone does (an idle API has no timer of its own)."""
         while not self._closing.is_set():
+            await self._listened.wait()
             await asyncio.sleep(POLL)
             if self.streams:
                 self.wake()
@@ -149,14 +167,14 @@ def _event_id(name: str, raw: str | None) -> int | None:
     return int(raw)
 
 
-def _after(request: web.Request) -> int | None:
+def _after(request: Request) -> int | None:
     """Where to start: the Last-Event-ID header (a reconnecting EventSource's), else `since`."""
     since = _event_id("since", request.query.get("since"))
     header = _event_id("Last-Event-ID", request.headers.get("Last-Event-ID"))
     return header if header is not None else since
 
 
-def _kinds(request: web.Request) -> frozenset[str] | None:
+def _kinds(request: Request) -> frozenset[str] | None:
     names = request.query.getall("event", [])
     if not names:
         return None
@@ -170,7 +188,7 @@ def _sse(event: StoredEvent) -> bytes:
     return f"id: {event.id}\nevent: {event.kind}\ndata: {event.body}\n\n".encode()
 
 
-async def events(request: web.Request) -> web.StreamResponse:
+async def events(request: Request) -> Response:
     """GET /events: a stream of Server-Sent Events when the client accepts
     text/event-stream, else the events after `since` at once, as JSON."""
     for key in request.query:
@@ -195,14 +213,14 @@ async def events(request: web.Request) -> web.StreamResponse:
         raise RequestError(
             503, f"{STREAMS_MAX} event streams are open already; close one", "events"
         )
-    resp = web.StreamResponse(
+    resp = StreamResponse(
         headers={
             "Content-Type": f"{SSE}; charset=utf-8",
             "Cache-Control": "no-cache",
             "X-Accel-Buffering": "no",
         }
     )
-    hub.streams += 1
+    hub.opened()
     try:
         await resp.prepare(request)
         await resp.write(b"retry: 1000\n\n")
@@ -214,7 +232,7 @@ async def events(request: web.Request) -> web.StreamResponse:
     except ConnectionError:  # the client went away
         pass
     finally:
-        hub.streams -= 1
+        hub.closed()
     with contextlib.suppress(ConnectionError):
         await resp.write_eof()
     return resp

@@ -10,10 +10,9 @@ import time
 from collections.abc import Iterable
 from dataclasses import replace
 
-from aiohttp import web
-
 from sdfr import __version__, auth, keystore, wire
 from sdfr.api.doors import over_unix_socket
+from sdfr.api.http import Request, Response, StreamResponse
 from sdfr.api.leases import TTL_MAX, TTL_MIN
 from sdfr.api.replies import RequestError, cannot_write_status, json_response, read_json
 from sdfr.api.state import (
@@ -37,7 +36,7 @@ log = logging.getLogger("sdfr.api")
 # -- handlers: local registrations -------------------------------------------------------------
 
 
-def _published(service: Service, version: int, status: int, lease: Lease | None) -> web.Response:
+def _published(service: Service, version: int, status: int, lease: Lease | None) -> Response:
     return json_response(
         {
             "id": service.id,
@@ -69,7 +68,7 @@ def _ttl(obj: object) -> float | None:
 
 async def _published_already(
     state: ApiState, service: Service, ttl: float | None
-) -> web.Response | None:
+) -> Response | None:
     """A publish under a chosen id that is stored already: the same service again (a client
     retrying after a lost answer, or publishing again after its lease ran out) gets 200 and
     its lease is set to `ttl` (renewed); another one, 409."""
@@ -90,7 +89,7 @@ async def _published_already(
     return _published(stored, state.store.local_version(), 200, lease)
 
 
-async def publish(request: web.Request) -> web.Response:
+async def publish(request: Request) -> Response:
     state = state_of(request)
     obj = await read_json(request)
     ttl = _ttl(obj)
@@ -139,7 +138,7 @@ async def publish(request: web.Request) -> web.Response:
     return _published(service, result, 201, lease)
 
 
-async def unpublish(request: web.Request) -> web.Response:
+async def unpublish(request: Request) -> Response:
     state = state_of(request)
     service_id = request.match_info["id"]
     version = await state.writer.write(Remove(service_id))
@@ -149,7 +148,7 @@ async def unpublish(request: web.Request) -> web.Response:
     state.leases.set(None, service_id)
     notify_discovery(state.cfg.state_dir)
     log.info("unpublished %s, version %s", service_id, version)
-    return web.Response(status=204)
+    return Response(status=204)
 
 
 def _no_such_service(service_id: str) -> RequestError:
@@ -160,7 +159,7 @@ def _no_such_service(service_id: str) -> RequestError:
     )
 
 
-async def get_service(request: web.Request) -> web.Response:
+async def get_service(request: Request) -> Response:
     state = state_of(request)
     service_id = request.match_info["id"]
     service = state.store.get_service(service_id)
@@ -185,7 +184,7 @@ async def _renew(state: ApiState, service_id: str, ttl: float | None) -> Lease:
     return lease
 
 
-async def renew(request: web.Request) -> web.Response:
+async def renew(request: Request) -> Response:
     """POST /services/{id}/renew: the lease runs `ttl` seconds from now again (the body may
     give another ttl); the answer says until when. Not fsynced: cheap."""
     state = state_of(request)
@@ -204,7 +203,7 @@ async def renew(request: web.Request) -> web.Response:
 HOLD_EVERY = 1 / 3
 
 
-async def hold(request: web.Request) -> web.StreamResponse:
+async def hold(request: Request) -> Response:
     """POST /services/{id}/hold: renew the lease for as long as this connection stays open
     (a Server-Sent Event `renewed` each time); when it closes, the lease runs out after its
     ttl. A program that cannot run a timer keeps its services alive with one request."""
@@ -214,7 +213,7 @@ async def hold(request: web.Request) -> web.StreamResponse:
     if "text/event-stream" not in request.headers.get("Accept", ""):
         # A client that cannot read a stream gets one renewal (as /renew), not a hang.
         return json_response({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
-    resp = web.StreamResponse(
+    resp = StreamResponse(
         headers={"Content-Type": "text/event-stream; charset=utf-8", "Cache-Control": "no-cache"}
     )
     await resp.prepare(request)
@@ -222,7 +221,9 @@ async def hold(request: web.Request) -> web.StreamResponse:
         while True:
             body = json.dumps({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
             await resp.write(f"event: renewed\ndata: {body}\n\n".encode())
-            if await state.hub.closing(max(0.2, lease.ttl * HOLD_EVERY)):
+            if await state.hub.closing(max(0.2, lease.ttl * HOLD_EVERY), resp.gone):
+                if resp.gone.is_set():
+                    raise ConnectionResetError  # the holder went away
                 break  # sdfrd stops: the lease runs its ttl (a restart is quicker than that)
             try:
                 lease = await _renew(state, service_id, None)
@@ -237,14 +238,14 @@ async def hold(request: web.Request) -> web.StreamResponse:
     return resp
 
 
-async def list_services(request: web.Request) -> web.Response:
+async def list_services(request: Request) -> Response:
     return json_response(state_of(request).view.services_body())
 
 
 # -- handlers: what discovery found ------------------------------------------------------------
 
 
-def _only_params(request: web.Request, allowed: Iterable[str]) -> None:
+def _only_params(request: Request, allowed: Iterable[str]) -> None:
     known = set(allowed)
     for key in request.query:
         if key not in known:
@@ -264,7 +265,7 @@ FLAG_VALUES = {
 }
 
 
-def _flag(request: web.Request, name: str) -> bool:
+def _flag(request: Request, name: str) -> bool:
     raw = request.query.get(name)
     if raw is None:
         return False
@@ -281,7 +282,7 @@ def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, 
     }
 
 
-async def neighbors(request: web.Request) -> web.Response:
+async def neighbors(request: Request) -> Response:
     _only_params(request, ["all"])
     include_unreachable = _flag(request, "all")
     name = "neighbors.all" if include_unreachable else "neighbors"
@@ -291,7 +292,7 @@ async def neighbors(request: web.Request) -> web.Response:
     return json_response(body)
 
 
-def _search_criteria(request: web.Request) -> tuple[str | None, dict[str, str]]:
+def _search_criteria(request: Request) -> tuple[str | None, dict[str, str]]:
     stype: str | None = None
     attrs: dict[str, str] = {}
     for key, value in request.query.items():
@@ -315,7 +316,7 @@ def _search_criteria(request: web.Request) -> tuple[str | None, dict[str, str]]:
     return stype, attrs
 
 
-async def search(request: web.Request) -> web.Response:
+async def search(request: Request) -> Response:
     stype, attrs = _search_criteria(request)
     found = []
     for peer in state_of(request).view.peers():
@@ -327,7 +328,7 @@ async def search(request: web.Request) -> web.Response:
     return json_response({"neighbors": found})
 
 
-async def history(request: web.Request) -> web.Response:
+async def history(request: Request) -> Response:
     body = state_of(request).view.peers_body(
         "history", lambda peers: {"robots": [p.to_json() for p in peers]}
     )
@@ -351,7 +352,7 @@ def _discovery_json(disc: DiscoveryState) -> dict[str, object]:
     }
 
 
-async def self_info(request: web.Request) -> web.Response:
+async def self_info(request: Request) -> Response:
     state = state_of(request)
     disc = state.discovery()
     version, services = state.view.local()
@@ -415,7 +416,7 @@ def state_problem(state: ApiState, disc: DiscoveryState) -> tuple[str, str] | No
     return None
 
 
-async def health(request: web.Request) -> web.Response:
+async def health(request: Request) -> Response:
     state = state_of(request)
     disc = state.discovery()
     failing = discovery_error(disc.status) if disc.up and disc.status else None
@@ -441,7 +442,7 @@ async def health(request: web.Request) -> web.Response:
 # -- handlers: the fleet keyring (unix socket only) --------------------------------------------
 
 
-def _need_unix_socket(request: web.Request) -> None:
+def _need_unix_socket(request: Request) -> None:
     """Key management is for whoever may open STATE_DIR/api.sock (its file mode says who),
     never for any program that can reach a TCP port."""
     if not over_unix_socket(request):
@@ -500,13 +501,14 @@ def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
     log.info("keyring: %s; mode %s, signing with %s", what, ring.mode, ring.primary)
 
 
-async def keys_list(request: web.Request) -> web.Response:
+async def keys_list(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     return json_response(_keys_json(state, _load_keyring(state)))
 
 
-async def _one_text_field(request: web.Request, name: str, shape: str) -> str:
+async def _one_text_field(request: Request, name: str, shape: str) -> str:
     """The body `{name: "..."}` and nothing else; a 422 naming `name` otherwise."""
     obj = await read_json(request)
     if not isinstance(obj, dict) or set(obj) != {name} or not isinstance(obj[name], str):
@@ -515,9 +517,10 @@ async def _one_text_field(request: web.Request, name: str, shape: str) -> str:
     return value
 
 
-async def keys_install(request: web.Request) -> web.Response:
+async def keys_install(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     text = await _one_text_field(request, "key", '"<base64 of 32 bytes>"')
     try:
         key = keystore.parse_key(text, "key")
@@ -531,27 +534,29 @@ async def keys_install(request: web.Request) -> web.Response:
     return json_response(body, status=201 if added else 200)
 
 
-async def keys_use(request: web.Request) -> web.Response:
+async def keys_use(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     kid = request.match_info["id"]
     stored = keystore.use(_load_keyring(state), kid)
     _save_keyring(state, stored, f"signing with key {kid}")
     return json_response(_keys_json(state, stored))
 
 
-async def keys_remove(request: web.Request) -> web.Response:
+async def keys_remove(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
     kid = request.match_info["id"]
     stored = keystore.remove(_load_keyring(state), kid)
     _save_keyring(state, stored, f"key {kid} removed")
-    return web.Response(status=204)
+    return Response(status=204)
 
 
-async def keys_mode(request: web.Request) -> web.Response:
+async def keys_mode(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    await state.fresh_counters()
     mode = await _one_text_field(request, "mode", '"accept" | "sign" | "enforce"')
     stored = keystore.set_mode(_load_keyring(state), mode)
     _save_keyring(state, stored, f"mode {mode}")

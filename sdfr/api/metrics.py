@@ -7,9 +7,8 @@ import platform
 from collections.abc import Callable
 from pathlib import Path
 
-from aiohttp import web
-
 from sdfr import DIST_NAME, __version__, procfs, wire
+from sdfr.api.http import Request, Response
 from sdfr.api.state import LATENCY_BUCKETS, ApiState, state_of
 from sdfr.status import DiscoveryStatus
 
@@ -200,6 +199,8 @@ def _process_metrics(
                 out.append(f'{name}{{layer="{layer}"}} {values[key]!r}')
 
 
-async def metrics(request: web.Request) -> web.Response:
-    body = metrics_text(state_of(request)).encode()
-    return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE})
+async def metrics(request: Request) -> Response:
+    state = state_of(request)
+    await state.fresh_counters()
+    body = metrics_text(state).encode()
+    return Response(body=body, headers={"Content-Type": CONTENT_TYPE})

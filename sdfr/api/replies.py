@@ -8,7 +8,7 @@ import json
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
-from aiohttp import web
+from sdfr.api.http import Request, Response
 
 #: A registration is at most one datagram; a request body never needs more than this.
 MAX_BODY = 64 * 1024
@@ -18,18 +18,25 @@ MAX_BODY = 64 * 1024
 BODY_TIMEOUT = 10.0
 
 
-#: What aiohttp calls to answer a request.
-Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+#: What answers a request.
+Handler = Callable[[Request], Awaitable[Response]]
 
 
 class RequestError(Exception):
     """An error answer other than a validation error (422): status, message, field."""
 
-    def __init__(self, status: int, message: str, field: str | None = None) -> None:
+    def __init__(
+        self,
+        status: int,
+        message: str,
+        field: str | None = None,
+        headers: Mapping[str, str] | None = None,
+    ) -> None:
         super().__init__(message)
         self.status = status
         self.message = message
         self.field = field
+        self.headers = headers
 
 
 def json_bytes(obj: Any) -> bytes:
@@ -38,16 +45,16 @@ def json_bytes(obj: Any) -> bytes:
 
 def json_response(
     body: Any, status: int = 200, headers: Mapping[str, str] | None = None
-) -> web.Response:
+) -> Response:
     data = body if isinstance(body, bytes) else json_bytes(body)
-    return web.Response(
+    return Response(
         body=data, status=status, headers=headers, content_type="application/json", charset="utf-8"
     )
 
 
 def error_response(
     status: int, message: str, field: str | None = None, headers: Mapping[str, str] | None = None
-) -> web.Response:
+) -> Response:
     return json_response({"error": message, "field": field}, status, headers)
 
 
@@ -55,7 +62,7 @@ def _reject_constant(name: str) -> float:
     raise ValueError(f"{name} is not valid JSON")
 
 
-async def read_json(request: web.Request) -> Any:
+async def read_json(request: Request) -> Any:
     try:
         raw = await asyncio.wait_for(request.read(), BODY_TIMEOUT)
     except TimeoutError:

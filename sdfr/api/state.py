@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -16,9 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from aiohttp import web
-
 from sdfr import procfs, wire
+from sdfr.api.http import AppKey, Request, Response
 from sdfr.api.replies import Handler, json_bytes
 from sdfr.config import Config, location_max_len
 from sdfr.model import PeerRecord, Service
@@ -35,8 +35,12 @@ from sdfr.store import (
 log = logging.getLogger("sdfr.api")
 
 
-#: A heartbeat older than this means the discovery layer is down (it writes one every second).
-HEARTBEAT_STALE = 3.0
+#: A heartbeat older than this means the discovery layer is down (it sends one every 2 s).
+HEARTBEAT_STALE = 5.0
+#: Counters older than this are asked for again before /metrics or /keys shows them (seconds).
+COUNTERS_FRESH = 0.5
+#: The longest such an answer waits for the discovery layer's status (seconds).
+STATUS_WAIT = 0.25
 #: Upper bounds (seconds) of the API latency histogram's buckets.
 LATENCY_BUCKETS = (
     0.0001,
@@ -62,8 +66,9 @@ FAILING_AFTER = 3
 # -- discovery notification --------------------------------------------------------------------
 
 
-def notify_discovery(state_dir: Path) -> None:
-    """Wake the discovery layer so it announces a change of the local services at once.
+def notify_discovery(state_dir: Path, what: bytes = b"services\n") -> bool:
+    """Wake the discovery layer so it announces a change of the local services at once (or,
+    `b"status\n"`, sends its status now); whether the datagram went.
 
     Best effort: when discovery is down it is told nothing, and it polls the version anyway.
     """
@@ -71,11 +76,13 @@ def notify_discovery(state_dir: Path) -> None:
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
         sock.setblocking(False)
         try:
-            sock.sendto(b"services\n", path)
+            sock.sendto(what, path)
         except (FileNotFoundError, ConnectionRefusedError, BlockingIOError):
-            pass
+            return False
         except OSError as exc:
             log.warning("cannot notify the discovery layer at %s: %s", path, exc)
+            return False
+    return True
 
 
 # -- discovery status --------------------------------------------------------------------------
@@ -336,23 +343,61 @@ class ApiState:
     def discovery(self) -> DiscoveryState:
         """The discovery layer's latest status: the one it sent over STATUS_SOCKET while that
         is fresh, else the file it writes (which survives a restart of this layer)."""
+        self._decode_live()
         live = self.live_status
         if live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE:
             return discovery_state(live)
         return discovery_state(DiscoveryStatus.from_json(self.store.read_status()))
 
+    def _decode_live(self) -> None:
+        """Decode the last whole status datagram, if one came since (decoded only when
+        needed: asked for, or a heartbeat to apply to it)."""
+        if self.live_raw is not None:
+            raw, self.live_raw = self.live_raw, None
+            try:
+                record = DiscoveryStatus.from_json(json.loads(raw))
+            except ValueError:
+                record = None
+            if record is not None:
+                self.live_status = record
+
     def take_status(self, data: bytes) -> None:
-        """A datagram from the discovery layer: its status, or news in the event log."""
+        """A datagram from the discovery layer: its status (kept as it came, decoded when
+        asked for), or news in the event log."""
         if data == b"events\n":
             if self.hub is not None:
                 self.hub.wake()
             return
-        try:
-            record = DiscoveryStatus.from_json(json.loads(data))
-        except ValueError:
+        if data.startswith(b"beat "):  # nothing changed but the counters: still alive
+            parts = data.split()
+            self._decode_live()
+            live = self.live_status
+            if live is not None and len(parts) == 3:
+                with contextlib.suppress(ValueError):
+                    if int(parts[1]) == live.pid:
+                        self.live_status = dataclasses.replace(live, heartbeat=float(parts[2]))
             return
-        if record is not None:
-            self.live_status = record
+        self.live_raw = data
+        self.live_at = time.monotonic()
+        if self.live_came is not None:
+            self.live_came.set()
+
+    async def fresh_counters(self) -> None:
+        """Make the discovery layer's counters current before answering with them (/metrics,
+        /keys): its whole status comes only when more than its counters changed, or every
+        5 ticks. If the last whole one is older than COUNTERS_FRESH, ask for one now
+        (b"status" on discovery.sock) and wait for it up to STATUS_WAIT; a discovery layer
+        that does not answer leaves the last one (and /health says why)."""
+        if time.monotonic() - self.live_at < COUNTERS_FRESH:
+            return
+        came = self.live_came = asyncio.Event()
+        try:
+            if notify_discovery(self.cfg.state_dir, b"status\n"):  # (else none is listening)
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(came.wait(), STATUS_WAIT)
+        finally:
+            if self.live_came is came:
+                self.live_came = None
 
     cfg: Config
     view: StoreView
@@ -362,6 +407,11 @@ class ApiState:
     #: The last failed write of the state directory (time, reason, message), until one works.
     write_problem: tuple[float, str, str] | None = None
     live_status: DiscoveryStatus | None = None
+    #: The discovery layer's last status datagram, not decoded yet.
+    live_raw: bytes | None = None
+    #: When the last whole status datagram came (monotonic), and who waits for the next.
+    live_at: float = -1e9
+    live_came: asyncio.Event | None = None
     #: GET /events (sdfr.api.events.EventHub) and the lease timer (sdfr.api.leases.Leases);
     #: set by create_app.
     hub: Any = None
@@ -372,23 +422,21 @@ class ApiState:
         return self.view.store
 
 
-STATE = web.AppKey("sdfr_state", ApiState)
+STATE = AppKey("sdfr_state", ApiState)
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 
-def state_of(request: web.Request) -> ApiState:
+def state_of(request: Request) -> ApiState:
     return request.app[STATE]
 
 
-@web.middleware
-async def measure(request: web.Request, handler: Handler) -> web.StreamResponse:
+async def measure(request: Request, handler: Handler) -> Response:
     start = time.perf_counter()
     try:
         return await handler(request)
     finally:
-        resource = request.match_info.route.resource
-        if resource is not None:
-            key = (request.method, resource.canonical)
+        if request.route is not None:
+            key = (request.method, request.route)
         else:  # bound the label sets whatever clients send
             method = request.method if request.method in _METHODS else "OTHER"
             key = (method, "unmatched")

@@ -17,9 +17,7 @@ import socket
 import sys
 from pathlib import Path
 
-from aiohttp import web
-
-from sdfr.api import STATE, ApiState, Runner, create_app
+from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app, notify_discovery
 from sdfr.config import Config, from_args, split_hostport
 from sdfr.daemon import logs, notify
 from sdfr.errors import ConfigError
@@ -68,17 +66,17 @@ def _clear_stale_socket(path: Path) -> None:
     raise StartError(f"{path}: another API layer is serving this state directory")
 
 
-async def _start_tcp(runner: web.AppRunner, flag: str, value: str) -> None:
+async def _start_tcp(runner: Runner, flag: str, value: str) -> None:
     host, port = split_hostport(flag, value)
     try:
-        await web.TCPSite(runner, host, port).start()
+        await TCPSite(runner, host, port).start()
     except OSError as exc:
         raise _bind_error(flag.replace("_", "-"), value, exc) from None
 
 
 async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
     """Serve until `stop` is set."""
-    access_log = logging.getLogger("aiohttp.access") if cfg.log_level == "debug" else None
+    access_log = logging.getLogger("sdfr.api.access") if cfg.log_level == "debug" else None
     app = create_app(cfg, store)
     runner = Runner(app, access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT)
     sock_path = api_socket_path(cfg.state_dir)
@@ -89,7 +87,7 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
         await _start_tcp(runner, "api", cfg.api)
         _clear_stale_socket(sock_path)
         try:
-            await web.UnixSite(runner, str(sock_path)).start()
+            await UnixSite(runner, str(sock_path)).start()
         except OSError as exc:
             raise StartError(f"{sock_path}: cannot listen: {exc.strerror or exc}") from None
         sock_bound = True
@@ -108,11 +106,15 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
                 sock_path.unlink()
 
 
+#: The layer's tick (seconds): its beat to the supervisor.
+BEAT_PERIOD = 2.0
+
+
 async def _beat() -> None:
     """The heartbeat the supervisor watches: from the event loop, so a hung loop stops it."""
     while True:
         notify.beat()
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(BEAT_PERIOD)
 
 
 class _StatusListener:
@@ -136,6 +138,8 @@ class _StatusListener:
         sock.setblocking(False)
         asyncio.get_running_loop().add_reader(sock.fileno(), self._read)
         self.sock = sock
+        # The discovery layer sends its status every 2 s: ask for it now.
+        notify_discovery(self.path.parent, b"status\n")
 
     def _read(self) -> None:
         assert self.sock is not None

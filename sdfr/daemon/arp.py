@@ -101,6 +101,9 @@ class Netlink:
             raise
 
     def _open(self) -> tuple[Any, int]:
+        from sdfr.daemon import allow_openssl
+
+        allow_openssl()  # (pyroute2 imports ssl)
         from pyroute2 import IPRoute
 
         ipr = IPRoute()

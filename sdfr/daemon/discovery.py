@@ -37,7 +37,16 @@ from sdfr.wire import MESSAGE_TYPES
 
 log = logging.getLogger("sdfrd.discovery")
 
-STATUS_PERIOD = 1.0
+#: The layer's tick: its status to the API layer (its heartbeat there) and its beat to the
+#: supervisor, the fallbacks for lost wake-ups (services, keyring), the address check.
+STATUS_PERIOD = 2.0
+#: The status file (read by an API layer that has no fresh datagram) is written when what it
+#: says changed, and at least this often (seconds): it also proves the state dir writable.
+STATUS_FILE_EVERY = 30.0
+#: Ticks between the fallbacks for lost wake-ups (the API layer's datagram on discovery.sock
+#: says when services or keys change; these look anyway), and between whole status records
+#: when nothing in them changed but the counters (the ticks between send a heartbeat alone).
+SLOW_TICKS = 5
 CONTROL_NAME = "discovery.sock"
 #: Failures of the layer's callbacks within this many seconds make /health say "failing".
 ERROR_WINDOW = 60.0
@@ -119,6 +128,10 @@ class DiscoveryLayer:
         self._status_sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._status_sock.setblocking(False)
         self._state_problem: tuple[float, str, str] | None = None
+        #: What the status file says (without the heartbeat and counters), and when written.
+        self._status_written: tuple[object, float] | None = None
+        #: `_status_signature()` when the last whole status was sent.
+        self._status_sent: tuple[object, ...] | None = None
         self._description_cache: tuple[tuple[object, ...], bytes] | None = None
         self._addr_timer: asyncio.TimerHandle | None = None
         self._arrivals = 0
@@ -275,15 +288,49 @@ class DiscoveryLayer:
             self.netlink.close()
 
     async def _periodic(self) -> None:
+        tick = 0
         while True:
             notify.beat()
             await asyncio.sleep(STATUS_PERIOD)
+            tick += 1
+            slow = tick % SLOW_TICKS == 0
             self._guard("periodic duties", self._check_address)
-            self._guard("reloading the services", self._reload_services)
-            self._guard("reloading the keyring", self._reload_keyring)
-            self._guard("writing the status", self._write_status)
+            if slow:
+                self._guard("reloading the services", self._reload_services)
+                self._guard("reloading the keyring", self._reload_keyring)
+            if slow or self._status_signature() != self._status_sent:
+                self._guard("writing the status", self._write_status)
+            else:  # nothing but counters changed: the heartbeat alone
+                self._guard("sending the heartbeat", self._send_heartbeat)
             if self.core.has_dirty:
                 self._guard("saving the history map", self._save)
+
+    def _status_signature(self) -> tuple[object, ...]:
+        """What changes the status record besides its heartbeat and counters, cheaply."""
+        core, machine, conflict = self.core, self.addressing, self.core.conflict
+        return (
+            core.version,
+            sum(1 for p in core.peers.values() if p.reachable),
+            len(core.peers),
+            self.address,
+            core.location,
+            len(self._errors),
+            self._last_error,
+            self._state_problem,
+            core.announce_error,
+            None if machine is None else (machine.state, machine.bound, len(machine.conflicts)),
+            None if conflict is None else conflict.count,
+            self.describe.where,
+            self._keyring_stamp,
+        )
+
+    def _send_heartbeat(self) -> None:
+        """`beat PID TIME`: the API layer's status stays the last whole one, now fresh."""
+        with contextlib.suppress(OSError):
+            self._status_sock.sendto(
+                f"beat {os.getpid()} {time.time():.3f}\n".encode(),
+                str(self.cfg.state_dir / STATUS_SOCKET),
+            )
 
     def _guard(self, what: str, duty: Callable[[], None]) -> None:
         """Run a callback's work; a failure is logged and counted (for /health), and the
@@ -323,13 +370,17 @@ class DiscoveryLayer:
         self._pump_addr()
 
     def _on_control(self) -> None:
+        asked = False
         while True:
             try:
-                self.control.recv(64)
+                asked |= self.control.recv(64).startswith(b"status")
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
                 break
+        if asked:  # an API layer that just started: our status at once, not within a tick
+            self._guard("sending the status", self._send_status)
+            return
         self._guard("reloading the keyring", self._reload_keyring)
         self._guard("reloading the services", self._reload_services)
         self._guard("sending", self._pump)
@@ -490,20 +541,37 @@ class DiscoveryLayer:
                 c.count,
             )
 
-    def _write_status(self) -> None:
-        self._log_conflict()
-        record = self._status().to_json()
+    def _send_status(self, record: dict[str, object] | None = None) -> None:
+        """Our status (`record`, else made now) to the API layer: a datagram, no disk."""
+        if record is None:
+            record = self._status().to_json()
+        self._status_sent = self._status_signature()
         with contextlib.suppress(OSError):  # no API layer listening: it reads the file later
             self._status_sock.sendto(
                 json.dumps(record, separators=(",", ":")).encode(),
                 str(self.cfg.state_dir / STATUS_SOCKET),
             )
+
+    def _write_status(self) -> None:
+        """The status to the API layer, and to the file when what it says changed (the
+        heartbeat and the counters aside) or STATUS_FILE_EVERY has passed: replacing a file
+        every tick was the layer's largest idle cost."""
+        self._log_conflict()
+        record = self._status().to_json()
+        self._send_status(record)
+        key = {k: v for k, v in record.items() if k not in ("heartbeat", "counters")}
+        now = time.monotonic()
+        last = self._status_written
+        if last is not None and last[0] == key and now - last[1] < STATUS_FILE_EVERY:
+            return
         try:
             self.store.write_status(record)
         except StateWriteError as exc:
             self._state_failed(exc)
+            self._status_written = None
         else:
             self._state_problem = None
+            self._status_written = (key, now)
 
     def _state_failed(self, exc: StateWriteError) -> None:
         """A write of the state dir failed (full, read-only): say so in the status, log it

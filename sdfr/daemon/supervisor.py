@@ -2,7 +2,15 @@
 
 The API layer and the discovery layer are separate processes so that either
 can crash or be restarted while the other goes on; they share only the
-store in the state directory. The supervisor restarts a layer that exits
+store in the state directory. The supervisor imports both layers' code once
+and forks each layer from itself (no exec): the interpreter and every module
+the layers load are then one set of pages shared by the three processes
+(`gc.freeze` keeps the collector from writing to them), so the tree costs
+little more than one process, and a restart is a fork, not a new
+interpreter. The supervisor itself runs no event loop and opens no database
+while the layers run: it sleeps in `select` until a layer's first beat, a
+child's exit, a signal, or its next check (a few seconds away), so it stays
+the one part that nothing can hang. The supervisor restarts a layer that exits
 without being asked to, with a growing back-off, and one whose heartbeat (a
 byte a second on a pipe) stops for STALL_AFTER seconds: a hung or stopped
 process is killed and started again. A layer that cannot start at all (exit
@@ -16,16 +24,21 @@ layers beat, and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import fcntl
+import gc
+import importlib
 import json
 import logging
 import os
+import select
 import signal
-import subprocess
 import sys
 import time
+import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -38,6 +51,13 @@ from sdfr.store import Store
 log = logging.getLogger("sdfrd")
 
 LAYERS = {"api": "sdfr.daemon.apiserver", "discovery": "sdfr.daemon.discovery"}
+#: A layer's name in `ps -o comm` and /proc/PID/comm (at most 15 bytes).
+COMM = {"api": "sdfrd-api", "discovery": "sdfrd-discovery"}
+#: When set (a directory), each layer runs under cProfile and writes
+#: DIR/<layer>-<pid>.pstats when it ends: where a layer's CPU goes (bench.footprint uses it).
+PROFILE_ENV = "SDFR_PROFILE"
+#: How often (seconds) the supervisor looks at beats it has not been woken for.
+CHECK_EVERY = 5.0
 STOP_GRACE = 5.0
 BACKOFF_MAX = 5.0
 STABLE_AFTER = 30.0
@@ -48,12 +68,79 @@ START_GRACE = 30.0
 #: A layer's exit status for "cannot start; a restart will not help" (its message says why).
 EXIT_CANNOT_START = 2
 _PR_SET_PDEATHSIG = 1
+_PR_SET_NAME = 15
 LOCK_NAME = "sdfrd.lock"
 
+#: A layer's entry point: its flags in, its exit status out.
+Main = Callable[[list[str]], int]
 
-def _die_with_parent() -> None:
+
+def _prctl(option: int, arg: int | bytes) -> None:
     libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    libc.prctl(option, arg, 0, 0, 0)
+
+
+def preload() -> dict[str, Main]:
+    """Import both layers now, so that the forked layers share these pages, and move what
+    exists to the collector's permanent generation (no collection writes to them)."""
+    mains: dict[str, Main] = {
+        name: importlib.import_module(module).main for name, module in LAYERS.items()
+    }
+    gc.collect()
+    gc.freeze()
+    return mains
+
+
+def _run_main(layer: Layer, args: list[str]) -> int:
+    """The layer's main, under cProfile when PROFILE_ENV names a directory."""
+    where = os.environ.get(PROFILE_ENV)
+    if not where:
+        return layer.main(args)
+    import cProfile
+
+    profile = cProfile.Profile()
+    try:
+        return profile.runcall(layer.main, args)
+    finally:
+        profile.dump_stats(str(Path(where) / f"{layer.name}-{os.getpid()}.pstats"))
+
+
+class Child:
+    """A forked layer: its pid and, once reaped, its exit status (negative: the signal)."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped elsewhere: its status is lost
+                self.returncode = 1
+                return self.returncode
+            if pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while (code := self.poll()) is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(f"pid {self.pid} still runs")
+            time.sleep(0.02)
+        return code
+
+    def signal(self, signum: int) -> None:
+        if self.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signum)
+
+    def kill(self) -> None:
+        self.signal(signal.SIGKILL)
+
+    def terminate(self) -> None:
+        self.signal(signal.SIGTERM)
 
 
 def resolve(cfg: Config) -> Config:
@@ -95,8 +182,8 @@ def lock_state_dir(state_dir: Path) -> int:
 @dataclass
 class Layer:
     name: str
-    module: str
-    proc: subprocess.Popen[bytes] | None = None
+    main: Main
+    proc: Child | None = None
     started: float = 0.0
     backoff: float = 0.2
     restart_at: float = 0.0
@@ -109,11 +196,16 @@ class Layer:
 
 
 class Supervisor:
-    def __init__(self, cfg: Config, lock_fd: int | None = None) -> None:
+    def __init__(
+        self, cfg: Config, lock_fd: int | None = None, mains: dict[str, Main] | None = None
+    ) -> None:
         self.cfg = cfg
         self.lock_fd = lock_fd
         self.args = to_args(cfg)
-        self.layers = [Layer(name, module) for name, module in LAYERS.items()]
+        mains = preload() if mains is None else mains
+        self.layers = [Layer(name, mains[name]) for name in LAYERS]
+        # Signals and children's exits wake the select loop through this pipe.
+        self._wake_r, self._wake_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
         self.stopping = False
         self.exit_status = 0
         self.pids_file = cfg.state_dir / "layers.json"
@@ -124,25 +216,57 @@ class Supervisor:
     def spawn(self, layer: Layer) -> None:
         if layer.beats is not None:
             os.close(layer.beats)
+            layer.beats = None
         beats, beat_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("NOTIFY_", "WATCHDOG_"))}
-        env[notify.HEARTBEAT_ENV] = str(beat_w)
-        keep = (beat_w,) if self.lock_fd is None else (beat_w, self.lock_fd)
-        try:
-            layer.proc = subprocess.Popen(
-                [sys.executable, "-m", layer.module, *self.args],
-                preexec_fn=_die_with_parent,
-                stdin=subprocess.DEVNULL,
-                pass_fds=keep,
-                env=env,
-            )
-        finally:
-            os.close(beat_w)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # the layer
+            os._exit(self._run_layer(layer, beats, beat_w))
+        os.close(beat_w)
+        layer.proc = Child(pid)
         layer.beats = beats
         layer.last_beat = None
         layer.started = time.monotonic()
-        log.info("%s layer started (pid %d)", layer.name, layer.proc.pid)
+        log.info("%s layer started (pid %d)", layer.name, pid)
         self._write_pids()
+
+    def _run_layer(self, layer: Layer, beats: int, beat_w: int) -> int:
+        """In the forked child: become the layer, run it, its exit status (never returns to
+        the supervisor's loop: the caller exits with it)."""
+        code = 1
+        try:
+            _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+            _prctl(_PR_SET_NAME, COMM[layer.name].encode())
+            signal.set_wakeup_fd(-1)
+            for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD):
+                signal.signal(signum, signal.SIG_DFL)
+            # What is the supervisor's alone: the other layers' pipes, its wake-up pipe.
+            for fd in [beats, self._wake_r, self._wake_w, *(x.beats for x in self.layers)]:
+                if fd is not None:
+                    os.close(fd)
+            for x in self.layers:
+                x.beats = None
+            devnull = os.open(os.devnull, os.O_RDONLY)
+            os.dup2(devnull, 0)
+            os.close(devnull)
+            for key in [k for k in os.environ if k.startswith(("NOTIFY_", "WATCHDOG_"))]:
+                del os.environ[key]
+            os.environ[notify.HEARTBEAT_ENV] = str(beat_w)
+            root = logging.getLogger()
+            for handler in root.handlers[:]:  # the layer sets up its own format
+                root.removeHandler(handler)
+            code = _run_main(layer, list(self.args))
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            with contextlib.suppress(Exception):
+                logging.shutdown()
+                sys.stdout.flush()
+                sys.stderr.flush()
+        return code
 
     def _write_pids(self) -> None:
         pids = {
@@ -157,10 +281,13 @@ class Supervisor:
 
     def run(self) -> int:
         def on_signal(signum: int, frame: object) -> None:
-            self.stopping = True
+            if signum != signal.SIGCHLD:
+                self.stopping = True
 
+        signal.set_wakeup_fd(self._wake_w, warn_on_full_buffer=False)
         signal.signal(signal.SIGTERM, on_signal)
         signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGCHLD, on_signal)
         for layer in self.layers:
             self.spawn(layer)
         while not self.stopping:
@@ -168,8 +295,30 @@ class Supervisor:
             for layer in self.layers:
                 self._watch(layer, now)
             self._tell_systemd(now)
-            time.sleep(0.05)
+            if self.stopping:
+                break
+            self._sleep(now)
+        signal.set_wakeup_fd(-1)
         return self.shutdown()
+
+    def _sleep(self, now: float) -> None:
+        """Until something needs looking at: a signal (a child's exit, SIGTERM), the first
+        beat of a layer not up yet, a restart or a systemd watchdog ping due, or CHECK_EVERY.
+        A layer that is up is not listened to: its beats wait in the pipe until the next
+        look, so steady beating wakes the supervisor once a CHECK_EVERY, not once a beat."""
+        wait = [self._wake_r]
+        until = now + CHECK_EVERY
+        for layer in self.layers:
+            if layer.proc is None:
+                until = min(until, layer.restart_at)
+            elif layer.last_beat is None and layer.beats is not None:
+                wait.append(layer.beats)
+        if self.watchdog is not None:
+            until = min(until, self._next_watchdog)
+        ready, _, _ = select.select(wait, [], [], max(0.0, until - now))
+        if self._wake_r in ready:
+            with contextlib.suppress(BlockingIOError):
+                os.read(self._wake_r, 4096)
 
     def _tell_systemd(self, now: float) -> None:
         up = all(layer.proc is not None and layer.last_beat is not None for layer in self.layers)
@@ -213,10 +362,9 @@ class Supervisor:
                         now - since,
                     )
                     proc.kill()  # (SIGKILL ends a stopped process too)
-                    proc.wait()
+                    code = proc.wait()
                 else:
                     return
-            code = proc.returncode
             if code == EXIT_CANNOT_START and not layer.ever_up:
                 log.error(
                     "%s layer cannot start (its error is above); a restart would not fix "
@@ -254,7 +402,7 @@ class Supervisor:
                 continue
             try:
                 layer.proc.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
+            except TimeoutError:
                 log.warning("%s layer did not stop in %.0f s; killing it", layer.name, STOP_GRACE)
                 layer.proc.kill()
                 layer.proc.wait()
@@ -263,6 +411,8 @@ class Supervisor:
             if layer.beats is not None:
                 os.close(layer.beats)
                 layer.beats = None
+        os.close(self._wake_r)
+        os.close(self._wake_w)
         log.info("stopped")
         return self.exit_status
 
@@ -293,10 +443,11 @@ def main(argv: list[str] | None = None) -> int:
         # Join the fleet's WiFi before the layers start; a wired interface, or wifi = off, or
         # no secret configured: the radio is left alone.
         wifi.setup(cfg)
+        mains = preload()
     except SdfrError as exc:
         print(f"sdfrd: {exc}", file=sys.stderr)
         return 2
-    return Supervisor(cfg, lock_fd).run()
+    return Supervisor(cfg, lock_fd, mains).run()
 
 
 if __name__ == "__main__":

@@ -16,9 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from aiohttp import web
-from aiohttp.test_utils import TestClient, TestServer
+from aiohttp import ClientSession
 
+from sdfr.api import App, Runner, TCPSite
 from sdfr.client import Client
 from sdfr.errors import ApiError
 
@@ -121,9 +121,18 @@ class ApiLayer:
 
 
 @contextlib.asynccontextmanager
-async def serve(app: web.Application) -> AsyncIterator[TestClient[web.Request, web.Application]]:
-    async with TestClient(TestServer(app)) as client:
-        yield client
+async def serve(app: App) -> AsyncIterator[ClientSession]:
+    """`app` served on a free port of 127.0.0.1 by the API's runner, and an HTTP client of it
+    (aiohttp's: a client independent of the server under test) taking paths."""
+    runner = Runner(app)
+    await runner.setup()
+    port = free_port()
+    await TCPSite(runner, "127.0.0.1", port).start()
+    try:
+        async with ClientSession(base_url=f"http://127.0.0.1:{port}") as client:
+            yield client
+    finally:
+        await runner.cleanup()
 
 
 def status(**extra: Any) -> dict[str, Any]:

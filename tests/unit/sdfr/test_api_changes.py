@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-from aiohttp import web
-from aiohttp.test_utils import TestClient
+from aiohttp import ClientSession
 
-from sdfr.api import STATE, create_app
+from sdfr.api import HEARTBEAT_STALE, STATE, create_app
 from sdfr.config import Config
 from sdfr.events import Event
 from sdfr.model import Service
@@ -21,7 +21,7 @@ from sdfr.store import EVENT_LOG_MAX, Store
 from tests.support.api import ApiLayer, aio, serve, status
 from tests.unit.sdfr.test_api import FLEET, peer
 
-Client = TestClient[web.Request, web.Application]
+Client = ClientSession
 SSE = {"Accept": "text/event-stream"}
 
 
@@ -261,3 +261,18 @@ async def test_metrics_build_process_and_peers(
     for name in ("process_cpu_seconds_total", "process_resident_memory_bytes", "process_open_fds"):
         assert f'{name}{{layer="api"}}' in text and f'{name}{{layer="discovery"}}' in text
     assert "sdfr_api_request_duration_seconds_count" in text
+
+
+def test_a_heartbeat_datagram_keeps_the_last_whole_status_fresh(cfg: Config, store: Store) -> None:
+    """The discovery layer sends its whole status only when more than its counters changed
+    (or every 5 ticks), and `beat PID TIME` otherwise: the API keeps the last whole one."""
+    state = create_app(cfg, store)[STATE]
+    stale = time.time() - HEARTBEAT_STALE - 1
+    state.take_status(json.dumps(status(heartbeat=stale, peers_known=9)).encode())
+    assert not state.discovery().up
+    state.take_status(f"beat {os.getpid()} {time.time():.3f}\n".encode())
+    now = state.discovery()
+    assert now.up and now.heartbeat_age is not None and now.heartbeat_age < 1.0
+    assert now.status is not None and now.status.peers_known == 9
+    state.take_status(f"beat 1 {stale:.3f}\n".encode())  # another process's: not ours
+    assert state.discovery().up

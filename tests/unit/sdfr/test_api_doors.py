@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from aiohttp import ClientSession, UnixConnector, web
+from aiohttp import ClientSession, UnixConnector
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -25,7 +25,10 @@ from sdfr import auth, keystore
 from sdfr.api import (
     MAX_BODY,
     STATE,
+    App,
     Runner,
+    TCPSite,
+    UnixSite,
     create_app,
 )
 from sdfr.auth import Keyring
@@ -37,10 +40,10 @@ from tests.support.api import aio, free_port, raw_exchange, serve, status
 
 
 @contextlib.asynccontextmanager
-async def over_unix_socket(app: web.Application, path: Path) -> AsyncIterator[ClientSession]:
-    runner = web.AppRunner(app)
+async def over_unix_socket(app: App, path: Path) -> AsyncIterator[ClientSession]:
+    runner = Runner(app)
     await runner.setup()
-    await web.UnixSite(runner, str(path)).start()
+    await UnixSite(runner, str(path)).start()
     try:
         async with ClientSession(connector=UnixConnector(str(path))) as session:
             yield session
@@ -239,7 +242,7 @@ async def test_errors_before_any_handler_are_json_too(cfg: Config, store: Store)
     runner = Runner(create_app(cfg, store))
     await runner.setup()
     port = free_port()
-    await web.TCPSite(runner, "127.0.0.1", port).start()
+    await TCPSite(runner, "127.0.0.1", port).start()
     try:
         many = b"".join(b"X-%d: 1\r\n" % i for i in range(200))
         cases = [
@@ -308,7 +311,7 @@ async def test_a_half_sent_request_is_dropped(cfg: Config, store: Store) -> None
     runner = Runner(create_app(cfg, store), keepalive_timeout=0.5)
     await runner.setup()
     port = free_port()
-    await web.TCPSite(runner, "127.0.0.1", port).start()
+    await TCPSite(runner, "127.0.0.1", port).start()
 
     def slowloris() -> float:
         with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:

@@ -48,7 +48,7 @@ def test_the_wheel_has_its_name_version_license_and_data(wheel: zipfile.ZipFile)
     for data in ("sdfr/py.typed", "sdfr/deploy/robot.toml", "sdfr/deploy/sdfrd.service"):
         assert data in names
     entry = wheel.read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
-    for command in ("sdfrd = sdfr.daemon.supervisor:main", "sdfr = sdfr.cli:main", "netlab ="):
+    for command in ("sdfrd = sdfr.daemon:main", "sdfr = sdfr.cli:main", "netlab ="):
         assert command in entry
 
 

@@ -10,6 +10,7 @@ import hashlib
 import json
 import os
 import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -365,3 +366,24 @@ def test_world_readable_secret_file_warns(
     os.chmod(tmp_path / "wifi.secret", 0o644)
     assert sdfr(["wifi-config", "--config", str(conf), "--iface", "wlan0", "--dry-run"]) == 0
     assert "readable by every user" in capsys.readouterr().err
+
+
+def test_the_key_is_the_same_without_openssl() -> None:
+    """sdfrd keeps OpenSSL out of its processes (sdfr.daemon): the fallback PBKDF2 gives
+    OpenSSL's key."""
+    for password, salt, rounds in ((b"password", b"IEEE", 4096), (SECRET.encode(), b"x", 1000)):
+        expected = hashlib.pbkdf2_hmac("sha256", password, salt, rounds, 32)
+        saved = sys.modules["_hashlib"]
+        sys.modules["_hashlib"] = None  # type: ignore[assignment]
+        try:
+            assert wifi.pbkdf2_sha256(password, salt, rounds) == expected
+        finally:
+            sys.modules["_hashlib"] = saved
+    long = b"p" * 100  # longer than a SHA-256 block: hashed first, as HMAC does
+    saved = sys.modules["_hashlib"]
+    sys.modules["_hashlib"] = None  # type: ignore[assignment]
+    try:
+        fallback = wifi.pbkdf2_sha256(long, b"s", 10)
+    finally:
+        sys.modules["_hashlib"] = saved
+    assert fallback == hashlib.pbkdf2_hmac("sha256", long, b"s", 10, 32)
