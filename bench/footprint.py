@@ -48,7 +48,6 @@ TARGET_PSS_MIB = 16.0
 TARGET_IDLE_CPU_PERCENT = 0.05
 #: The paper: under 0.3 % of 4 GB.
 PAPER_MEMORY_MB = 0.003 * 4000
-ROLES = {"sdfrd-api": "api", "sdfrd-discovery": "discovery"}
 
 
 def err(text: str) -> None:
@@ -82,14 +81,6 @@ def on_cpu_ns(pid: int) -> int:
     except (OSError, ValueError, IndexError):
         pass
     return total
-
-
-def role(pid: int) -> str:
-    try:
-        comm = Path(f"/proc/{pid}/comm").read_text().strip()
-    except OSError:
-        return "gone"
-    return ROLES.get(comm, "supervisor")
 
 
 def daemon_tree(lab: Lab, name: str) -> list[int]:
@@ -147,8 +138,8 @@ def memory_phase(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
             180,
         )
         time.sleep(args.settle)
-        mine = memory_of(daemon_tree(lab, "r1"), role)
-        everyone = [memory_of(daemon_tree(lab, n), role)["total"] for n in names]
+        mine = memory_of(daemon_tree(lab, "r1"), procstat.layer_of)
+        everyone = [memory_of(daemon_tree(lab, n), procstat.layer_of)["total"] for n in names]
     return {
         "robots": len(names),
         "services_published": args.services,
@@ -272,9 +263,9 @@ def cpu_phase(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
         for n, tree in trees.items():
             per_robot[n] = {
                 "percent": round(sum(pct(p) for p in tree), 4),
-                "by_process": {role(p): round(pct(p), 4) for p in tree},
+                "by_process": {procstat.layer_of(p): round(pct(p), 4) for p in tree},
             }
-        sdfr_mem = {n: memory_of(t, role) for n, t in trees.items()}
+        sdfr_mem = {n: memory_of(t, procstat.layer_of) for n, t in trees.items()}
         zc_mem = {n: memory_of([p], lambda p: "zeroconf") for n, p in zc_pids.items()}
         zc_cpu = {n: round(pct(p), 4) for n, p in zc_pids.items()}
         if args.profile:

@@ -54,20 +54,6 @@ def conditions() -> dict[str, Any]:
     }
 
 
-def layer_of(pid: int) -> str:
-    try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return "gone"
-    if "apiserver" in cmd:
-        return "api"
-    if "discovery" in cmd:
-        return "discovery"
-    if "supervisor" in cmd:
-        return "supervisor"
-    return "other"
-
-
 class Sampler:
     """Reads the CPU time and PSS of process trees every SAMPLE_EVERY_S seconds, in a thread."""
 
@@ -88,7 +74,7 @@ class Sampler:
             for pid in pids:
                 one = procstat.Usage.read([pid])
                 if one.processes:
-                    series = self.layers[name].setdefault(layer_of(pid), [])
+                    series = self.layers[name].setdefault(procstat.layer_of(pid), [])
                     series.append(Reading(one.time, one.cpu_s, one.pss_kb, one.rss_kb))
 
     def _run(self) -> None:

@@ -21,10 +21,27 @@ from typing import Any
 
 from sdfr import procfs
 
+#: A forked layer's /proc/PID/comm -> its name.
+LAYER_COMMS = {comm: layer for layer, comm in procfs.LAYER_COMM.items()}
+
 __all__ = ["Memory", "Usage", "children", "frames", "memory", "rollup", "tree", "window"]
 
 _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 _PAGE_KB = (os.sysconf("SC_PAGE_SIZE") // 1024) if hasattr(os, "sysconf") else 4
+
+
+def layer_of(pid: int, proc: Path = Path("/proc")) -> str:
+    """Which part of a sdfrd tree a process is: "api" or "discovery" (the names the supervisor
+    gives its forked layers in /proc/PID/comm), "supervisor" (sdfrd itself), "other" (not
+    sdfrd's: a tree may hold a program the daemon started) or "gone"."""
+    try:
+        comm = (proc / str(pid) / "comm").read_text().strip()
+        cmd = (proc / str(pid) / "cmdline").read_bytes()
+    except OSError:
+        return "gone"
+    if comm in LAYER_COMMS:
+        return LAYER_COMMS[comm]
+    return "supervisor" if b"sdfrd" in cmd or b"sdfr.daemon" in cmd else "other"
 
 
 def children(proc: Path = Path("/proc")) -> dict[int, list[int]]:

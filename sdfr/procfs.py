@@ -6,6 +6,10 @@ from collections.abc import Mapping
 from pathlib import Path
 
 PROC = Path("/proc")
+#: The name sdfrd's supervisor gives each layer it forks, in `ps -o comm` and /proc/PID/comm
+#: (at most 15 bytes): how a layer is told apart from its supervisor, whose command line it
+#: shares.
+LAYER_COMM = {"api": "sdfrd-api", "discovery": "sdfrd-discovery"}
 
 
 def stat_fields(pid: int, proc: Path = PROC) -> list[str] | None:

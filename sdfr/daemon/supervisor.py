@@ -42,7 +42,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from sdfr import keystore, netif, wifi
+from sdfr import keystore, netif, procfs, wifi
 from sdfr.config import Config, from_args, to_args
 from sdfr.daemon import logs, notify
 from sdfr.errors import SdfrError
@@ -51,8 +51,6 @@ from sdfr.store import Store
 log = logging.getLogger("sdfrd")
 
 LAYERS = {"api": "sdfr.daemon.apiserver", "discovery": "sdfr.daemon.discovery"}
-#: A layer's name in `ps -o comm` and /proc/PID/comm (at most 15 bytes).
-COMM = {"api": "sdfrd-api", "discovery": "sdfrd-discovery"}
 #: When set (a directory), each layer runs under cProfile and writes
 #: DIR/<layer>-<pid>.pstats when it ends: where a layer's CPU goes (bench.footprint uses it).
 PROFILE_ENV = "SDFR_PROFILE"
@@ -237,7 +235,7 @@ class Supervisor:
         code = 1
         try:
             _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-            _prctl(_PR_SET_NAME, COMM[layer.name].encode())
+            _prctl(_PR_SET_NAME, procfs.LAYER_COMM[layer.name].encode())
             signal.set_wakeup_fd(-1)
             for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD):
                 signal.signal(signum, signal.SIG_DFL)

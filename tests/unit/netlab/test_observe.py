@@ -159,6 +159,24 @@ def test_a_process_tree_and_its_cpu_and_memory() -> None:
     assert gone.processes == 0 and gone.cpu_s == 0
 
 
+def test_a_sdfrd_process_is_told_apart_by_its_name_not_its_shared_command_line(
+    tmp_path: Path,
+) -> None:
+    def proc(pid: int, comm: str, cmdline: bytes) -> None:
+        (tmp_path / str(pid)).mkdir()
+        (tmp_path / str(pid) / "comm").write_text(comm + "\n")
+        (tmp_path / str(pid) / "cmdline").write_bytes(cmdline)
+
+    sdfrd = b"/venv/bin/python3\0/venv/bin/sdfrd\0--fleet\x003\0"
+    proc(10, "sdfrd", sdfrd)
+    proc(11, "sdfrd-api", sdfrd)  # forked: the supervisor's command line, its own name
+    proc(12, "sdfrd-discovery", sdfrd)
+    proc(13, "python3", b"python3\0-m\0sdfr.daemon\0")
+    proc(14, "tcpdump", b"tcpdump\0-i\0eth0\0")
+    layers = [procstat.layer_of(pid, tmp_path) for pid in (10, 11, 12, 13, 14, 15)]
+    assert layers == ["supervisor", "api", "discovery", "supervisor", "other", "gone"]
+
+
 # -- the scenario engine ----------------------------------------------------------------------
 
 
