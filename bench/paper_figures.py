@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench.paper_measure import PAPER, PAPER_MEMORY_MIB
+from bench.paper_measure import PAPER, PAPER_MEMORY_MIB, dig
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -18,14 +18,6 @@ _DPI = 110
 OURS = "#1f77b4"
 OURS_P99 = "#aec7e8"
 PAPER_COLOR = "#ff7f0e"
-
-
-def _get(d: Any, *keys: str) -> Any:
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return None
-        d = d[k]
-    return d
 
 
 def figures(result: dict[str, Any]) -> dict[str, Any]:
@@ -37,12 +29,12 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "unit": "ms",
         "runs": names,
         "ours": {
-            "publish_p50": [_get(r, "latency", "publish", "p50_ms") for r in runs],
-            "publish_p99": [_get(r, "latency", "publish", "p99_ms") for r in runs],
-            "unpublish_p50": [_get(r, "latency", "unpublish", "p50_ms") for r in runs],
-            "unpublish_p99": [_get(r, "latency", "unpublish", "p99_ms") for r in runs],
-            "neighbors_p50": [_get(r, "latency", "neighbors", "p50_ms", "mean") for r in runs],
-            "neighbors_p99": [_get(r, "latency", "neighbors", "p99_ms", "max") for r in runs],
+            "publish_p50": [dig(r, "latency", "publish", "p50_ms") for r in runs],
+            "publish_p99": [dig(r, "latency", "publish", "p99_ms") for r in runs],
+            "unpublish_p50": [dig(r, "latency", "unpublish", "p50_ms") for r in runs],
+            "unpublish_p99": [dig(r, "latency", "unpublish", "p99_ms") for r in runs],
+            "neighbors_p50": [dig(r, "latency", "neighbors", "p50_ms", "mean") for r in runs],
+            "neighbors_p99": [dig(r, "latency", "neighbors", "p99_ms", "max") for r in runs],
         },
         "paper": {
             "publish_ms": list(PAPER["publish_ms"]),  # type: ignore[call-overload]
@@ -55,13 +47,13 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "title": "CPU and memory of the daemon under the paper's load (paper: figure 5)",
         "runs": names,
         "ours": {
-            "cpu_percent_mean": [_get(r, "resources", "cpu_percent", "mean") for r in runs],
-            "cpu_percent_max": [_get(r, "resources", "cpu_percent", "max") for r in runs],
+            "cpu_percent_mean": [dig(r, "resources", "cpu_percent", "mean") for r in runs],
+            "cpu_percent_max": [dig(r, "resources", "cpu_percent", "max") for r in runs],
             "discovery_cpu_percent_mean": [
-                _get(r, "resources", "discovery_cpu_percent", "mean") for r in runs
+                dig(r, "resources", "discovery_cpu_percent", "mean") for r in runs
             ],
-            "pss_mib_mean": [_get(r, "resources", "pss_mib", "mean") for r in runs],
-            "pss_mib_max": [_get(r, "resources", "pss_mib", "max") for r in runs],
+            "pss_mib_mean": [dig(r, "resources", "pss_mib", "mean") for r in runs],
+            "pss_mib_max": [dig(r, "resources", "pss_mib", "max") for r in runs],
         },
         "paper": {
             "cpu_percent": list(PAPER["cpu_percent"]),  # type: ignore[call-overload]
@@ -74,11 +66,11 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "unit": "kB (1000 B) per robot per 5 min",
         "runs": names,
         "ours": {
-            key: [_get(r, "traffic", "per_5_min_kB", key, "mean") for r in runs]
+            key: [dig(r, "traffic", "per_5_min_kB", key, "mean") for r in runs]
             for key in ("tx_payload", "rx_payload", "tx_frame", "rx_frame")
         },
         "ours_max": {
-            key: [_get(r, "traffic", "per_5_min_kB", key, "max") for r in runs]
+            key: [dig(r, "traffic", "per_5_min_kB", key, "max") for r in runs]
             for key in ("tx_payload", "rx_payload")
         },
         "paper": {
@@ -91,7 +83,7 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "title": "Bytes per robot in 5 minutes as the fleet grows (70 % publishers, no consumers)",
         "robots": [r["robots"] for r in scale],
         "ours": {
-            key: [_get(r, "traffic", "per_5_min_kB", key, "mean") for r in scale]
+            key: [dig(r, "traffic", "per_5_min_kB", key, "mean") for r in scale]
             for key in ("tx_payload", "rx_payload", "tx_frame", "rx_frame")
         },
     }
