@@ -201,3 +201,105 @@ def _growth(f: dict[str, Any]) -> Any:
     ax.legend()
     ax.set_title(f["title"], fontsize=9)
     return fig
+
+
+def _n(v: Any, fmt: str = ".1f") -> str:
+    return "—" if not isinstance(v, int | float) or v != v else format(v, fmt)
+
+
+def _pair(a: Any, b: Any, fmt: str = ".1f") -> str:
+    return f"{_n(a, fmt)} / {_n(b, fmt)}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The run's tables for the docs (Markdown): figures 4-6 per run with the paper's numbers,
+    the side-by-side with python-zeroconf, and the bytes as the fleet grows."""
+    minutes = result.get("minutes_per_run") or 5.0
+    head = (
+        f"`make bench-paper`, {result.get('mode', 'full')} run: {minutes:g} min of load per "
+        f"run, 10 s beacon, {dig(result, 'machine', 'nproc')} cores; loads in bench-paper.json."
+    )
+    out = [head, ""]
+    out += [
+        "| run | publish p50 / p99 (ms) | unpublish p50 / p99 (ms) | neighbours p50 / p99 (ms) "
+        "| neighbour lists answered /s per robot | CPU % of a core: daemon (discovery) | PSS "
+        "MiB | TX kB / 5 min | RX kB / 5 min | changes seen by every peer within 0.5 s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in result.get("runs", []):
+        lat, res = r.get("latency", {}), r.get("resources", {})
+        per_5 = dig(r, "traffic", "per_5_min_kB") or {}
+        asked = dig(lat, "neighbors", "requests")
+        rate = asked / (minutes * 60) / r["robots"] if isinstance(asked, int) else None
+        seen = dig(r, "seen_by_peers", "within_bound") or {}
+        out.append(
+            f"| {r['config']} "
+            f"| {_pair(dig(lat, 'publish', 'p50_ms'), dig(lat, 'publish', 'p99_ms'))} "
+            f"| {_pair(dig(lat, 'unpublish', 'p50_ms'), dig(lat, 'unpublish', 'p99_ms'))} "
+            f"| {_pair(dig(lat, 'neighbors', 'p50_ms', 'mean'), dig(lat, 'neighbors', 'p99_ms', 'max'))} "  # noqa: E501
+            f"| {_n(rate, ',.0f')} "
+            f"| {_n(dig(res, 'cpu_percent', 'mean'))} "
+            f"({_n(dig(res, 'discovery_cpu_percent', 'mean'), '.2f')}) "
+            f"| {_n(dig(res, 'pss_mib', 'mean'))} "
+            f"| {_n(dig(per_5, 'tx_payload', 'mean'))} | {_n(dig(per_5, 'rx_payload', 'mean'))} "
+            f"| {_pair(seen.get('publish'), seen.get('unpublish'), '.1%')} |"
+        )  # fmt: skip
+    p: dict[str, Any] = PAPER
+
+    def span(key: str) -> str:
+        lo, hi = p[key]
+        return f"{lo:g}-{hi:g}"
+
+    out.append(
+        f"| the paper (its ranges over all runs) | {span('publish_ms')} | {span('unpublish_ms')} "
+        f"| under {p['neighbors_ms_max']:g} | — | {span('cpu_percent')} "
+        f"| under {PAPER_MEMORY_MIB:.0f} | {span('tx_kB_5min')} | {span('rx_kB_5min')} | — |"
+    )
+    rows = dig(result, "side_by_side", "table")
+    if rows:
+        sbs = result["side_by_side"]
+        out += [
+            "",
+            f"Side by side, one lab of {sbs.get('robots')} robots, "
+            f"{sbs.get('publishers_per_robot')} services each under the same churn "
+            f"(SDfR at its {sbs.get('sdfr_beacon_s'):g} s beacon):",
+            "",
+            "| measure | SDfR | python-zeroconf | zeroconf ÷ SDfR | note |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for row in rows:
+            vals = [row["sdfr"], row["zeroconf"], row["ratio"]]
+            cells = [_n(v, "g") if not isinstance(v, str) else v for v in vals]
+            out.append(f"| {row['measure']} | {' | '.join(cells)} | {row.get('note', '')} |")
+    scale = result.get("scale") or []
+    if scale:
+        out += [
+            "",
+            "Bytes per robot as the fleet grows (70 % publishers, no consumers), kB per 5 min:",
+            "",
+            "| robots | TX payload | RX payload | TX frames | RX frames |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for r in scale:
+            per_5 = dig(r, "traffic", "per_5_min_kB") or {}
+            cells = [
+                _n(dig(per_5, k, "mean"))
+                for k in ("tx_payload", "rx_payload", "tx_frame", "rx_frame")
+            ]
+            out.append(f"| {r['robots']} | {' | '.join(cells)} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m bench.paper_figures RESULT.json`: the run's tables (Markdown) on stdout."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("result", type=Path, help="a bench-paper.json")
+    args = p.parse_args(argv)
+    print(markdown(json.loads(args.result.read_text())), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
