@@ -121,11 +121,19 @@ def _num(values: Sequence[Any]) -> list[float]:
     return [float(v) if v is not None else 0.0 for v in values]
 
 
-def _bars(ax: Axes, runs: Sequence[str], p50: Sequence[Any], p99: Sequence[Any] | None) -> None:
+def _bars(
+    ax: Axes,
+    runs: Sequence[str],
+    front: Sequence[Any],
+    back: Sequence[Any] | None,
+    labels: tuple[str, str] = ("ours p50", "ours p99"),
+) -> None:
+    """Our bars: `front` (dark) before `back` (light, taller: a p99 behind its p50, frames
+    behind their payload)."""
     x = list(range(len(runs)))
-    if p99 is not None:
-        ax.bar(x, _num(p99), width=0.6, color=OURS_P99, label="ours p99")
-    ax.bar(x, _num(p50), width=0.6, color=OURS, label="ours p50" if p99 is not None else "ours")
+    if back is not None:
+        ax.bar(x, _num(back), width=0.6, color=OURS_P99, label=labels[1])
+    ax.bar(x, _num(front), width=0.6, color=OURS, label=labels[0] if back is not None else "ours")
     ax.set_xticks(x, [r.replace("static-", "s").replace("dynamic-", "d") for r in runs])
     ax.tick_params(axis="x", labelrotation=45, labelsize=8)
 
@@ -181,10 +189,10 @@ def _fig6(f: dict[str, Any]) -> Any:
     tx_ax, rx_ax = fig.subplots(1, 2)
     o, p = f["ours"], f["paper"]
     for ax, d in ((tx_ax, "tx"), (rx_ax, "rx")):
-        _bars(ax, f["runs"], o[f"{d}_payload"], o[f"{d}_frame"])
+        _bars(ax, f["runs"], o[f"{d}_payload"], o[f"{d}_frame"], ("UDP payload", "whole frames"))
         lo, hi = p[f"{d}_kB"]
         _band(ax, lo, hi, f"paper {lo:g}-{hi:g} kB")
-        ax.set_title(f"{d.upper()} kB per robot in 5 min (dark: UDP payload, light: frames)")
+        ax.set_title(f"{d.upper()} kB per robot in 5 min", fontsize=10)
         ax.legend(fontsize=7)
     fig.suptitle(f["title"])
     return fig
@@ -291,13 +299,19 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m bench.paper_figures RESULT.json`: the run's tables (Markdown) on stdout."""
+    """`python -m bench.paper_figures RESULT.json [--draw DIR]`: the run's tables (Markdown) on
+    stdout, and its figures drawn again."""
     import argparse
 
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("result", type=Path, help="a bench-paper.json")
+    p.add_argument("--draw", type=Path, metavar="DIR", help="also draw its figures again in DIR")
     args = p.parse_args(argv)
-    print(markdown(json.loads(args.result.read_text())), end="")
+    result = json.loads(args.result.read_text())
+    if args.draw:
+        args.draw.mkdir(parents=True, exist_ok=True)
+        write(figures(result), args.draw)
+    print(markdown(result), end="")
     return 0
 
 
