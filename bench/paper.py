@@ -22,7 +22,8 @@ one lab) and the bytes per robot at 2, 6 and 20 robots (`--scale`), unless skipp
 
 Everything goes into one run folder (runs/bench-paper-<time>/): each run's pcaps and
 daemon logs, `figures.json` (the data of every figure, the paper's numbers beside ours),
-fig4-latency.png, fig5-cpu-memory.png, fig6-traffic.png, and `bench-paper.json`, the whole
+fig4-latency.png, fig5-cpu-memory.png, fig6-traffic.png, `tables.md` (the docs' tables; again
+from a result: `python -m bench.paper_figures RESULT`) and `bench-paper.json`, the whole
 result (also on stdout), with the machine's load average before and after each run.  Needs
 root.  Exit status 1 when a run failed, 2 when the bench could not run.
 """
@@ -472,6 +473,8 @@ def main(argv: list[str] | None = None) -> int:
     result["wall_s"] = round(time.monotonic() - t0, 1)
     figures = paper_figures.figures(result)
     result["figures"] = paper_figures.write(figures, folder)
+    (folder / "tables.md").write_text(paper_figures.markdown(result))
+    result["figures"]["tables"] = str(folder / "tables.md")
     text = json.dumps(result, indent=2)
     (folder / "bench-paper.json").write_text(text + "\n")
     if args.out:

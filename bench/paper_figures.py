@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench.paper_measure import PAPER, PAPER_MEMORY_MIB
+from bench.paper_measure import PAPER, PAPER_MEMORY_MIB, dig
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -18,14 +18,6 @@ _DPI = 110
 OURS = "#1f77b4"
 OURS_P99 = "#aec7e8"
 PAPER_COLOR = "#ff7f0e"
-
-
-def _get(d: Any, *keys: str) -> Any:
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return None
-        d = d[k]
-    return d
 
 
 def figures(result: dict[str, Any]) -> dict[str, Any]:
@@ -37,12 +29,12 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "unit": "ms",
         "runs": names,
         "ours": {
-            "publish_p50": [_get(r, "latency", "publish", "p50_ms") for r in runs],
-            "publish_p99": [_get(r, "latency", "publish", "p99_ms") for r in runs],
-            "unpublish_p50": [_get(r, "latency", "unpublish", "p50_ms") for r in runs],
-            "unpublish_p99": [_get(r, "latency", "unpublish", "p99_ms") for r in runs],
-            "neighbors_p50": [_get(r, "latency", "neighbors", "p50_ms", "mean") for r in runs],
-            "neighbors_p99": [_get(r, "latency", "neighbors", "p99_ms", "max") for r in runs],
+            "publish_p50": [dig(r, "latency", "publish", "p50_ms") for r in runs],
+            "publish_p99": [dig(r, "latency", "publish", "p99_ms") for r in runs],
+            "unpublish_p50": [dig(r, "latency", "unpublish", "p50_ms") for r in runs],
+            "unpublish_p99": [dig(r, "latency", "unpublish", "p99_ms") for r in runs],
+            "neighbors_p50": [dig(r, "latency", "neighbors", "p50_ms", "mean") for r in runs],
+            "neighbors_p99": [dig(r, "latency", "neighbors", "p99_ms", "max") for r in runs],
         },
         "paper": {
             "publish_ms": list(PAPER["publish_ms"]),  # type: ignore[call-overload]
@@ -55,13 +47,13 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "title": "CPU and memory of the daemon under the paper's load (paper: figure 5)",
         "runs": names,
         "ours": {
-            "cpu_percent_mean": [_get(r, "resources", "cpu_percent", "mean") for r in runs],
-            "cpu_percent_max": [_get(r, "resources", "cpu_percent", "max") for r in runs],
+            "cpu_percent_mean": [dig(r, "resources", "cpu_percent", "mean") for r in runs],
+            "cpu_percent_max": [dig(r, "resources", "cpu_percent", "max") for r in runs],
             "discovery_cpu_percent_mean": [
-                _get(r, "resources", "discovery_cpu_percent", "mean") for r in runs
+                dig(r, "resources", "discovery_cpu_percent", "mean") for r in runs
             ],
-            "pss_mib_mean": [_get(r, "resources", "pss_mib", "mean") for r in runs],
-            "pss_mib_max": [_get(r, "resources", "pss_mib", "max") for r in runs],
+            "pss_mib_mean": [dig(r, "resources", "pss_mib", "mean") for r in runs],
+            "pss_mib_max": [dig(r, "resources", "pss_mib", "max") for r in runs],
         },
         "paper": {
             "cpu_percent": list(PAPER["cpu_percent"]),  # type: ignore[call-overload]
@@ -74,11 +66,11 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "unit": "kB (1000 B) per robot per 5 min",
         "runs": names,
         "ours": {
-            key: [_get(r, "traffic", "per_5_min_kB", key, "mean") for r in runs]
+            key: [dig(r, "traffic", "per_5_min_kB", key, "mean") for r in runs]
             for key in ("tx_payload", "rx_payload", "tx_frame", "rx_frame")
         },
         "ours_max": {
-            key: [_get(r, "traffic", "per_5_min_kB", key, "max") for r in runs]
+            key: [dig(r, "traffic", "per_5_min_kB", key, "max") for r in runs]
             for key in ("tx_payload", "rx_payload")
         },
         "paper": {
@@ -91,7 +83,7 @@ def figures(result: dict[str, Any]) -> dict[str, Any]:
         "title": "Bytes per robot in 5 minutes as the fleet grows (70 % publishers, no consumers)",
         "robots": [r["robots"] for r in scale],
         "ours": {
-            key: [_get(r, "traffic", "per_5_min_kB", key, "mean") for r in scale]
+            key: [dig(r, "traffic", "per_5_min_kB", key, "mean") for r in scale]
             for key in ("tx_payload", "rx_payload", "tx_frame", "rx_frame")
         },
     }
@@ -129,11 +121,19 @@ def _num(values: Sequence[Any]) -> list[float]:
     return [float(v) if v is not None else 0.0 for v in values]
 
 
-def _bars(ax: Axes, runs: Sequence[str], p50: Sequence[Any], p99: Sequence[Any] | None) -> None:
+def _bars(
+    ax: Axes,
+    runs: Sequence[str],
+    front: Sequence[Any],
+    back: Sequence[Any] | None,
+    labels: tuple[str, str] = ("ours p50", "ours p99"),
+) -> None:
+    """Our bars: `front` (dark) before `back` (light, taller: a p99 behind its p50, frames
+    behind their payload)."""
     x = list(range(len(runs)))
-    if p99 is not None:
-        ax.bar(x, _num(p99), width=0.6, color=OURS_P99, label="ours p99")
-    ax.bar(x, _num(p50), width=0.6, color=OURS, label="ours p50" if p99 is not None else "ours")
+    if back is not None:
+        ax.bar(x, _num(back), width=0.6, color=OURS_P99, label=labels[1])
+    ax.bar(x, _num(front), width=0.6, color=OURS, label=labels[0] if back is not None else "ours")
     ax.set_xticks(x, [r.replace("static-", "s").replace("dynamic-", "d") for r in runs])
     ax.tick_params(axis="x", labelrotation=45, labelsize=8)
 
@@ -189,10 +189,10 @@ def _fig6(f: dict[str, Any]) -> Any:
     tx_ax, rx_ax = fig.subplots(1, 2)
     o, p = f["ours"], f["paper"]
     for ax, d in ((tx_ax, "tx"), (rx_ax, "rx")):
-        _bars(ax, f["runs"], o[f"{d}_payload"], o[f"{d}_frame"])
+        _bars(ax, f["runs"], o[f"{d}_payload"], o[f"{d}_frame"], ("UDP payload", "whole frames"))
         lo, hi = p[f"{d}_kB"]
         _band(ax, lo, hi, f"paper {lo:g}-{hi:g} kB")
-        ax.set_title(f"{d.upper()} kB per robot in 5 min (dark: UDP payload, light: frames)")
+        ax.set_title(f"{d.upper()} kB per robot in 5 min", fontsize=10)
         ax.legend(fontsize=7)
     fig.suptitle(f["title"])
     return fig
@@ -209,3 +209,111 @@ def _growth(f: dict[str, Any]) -> Any:
     ax.legend()
     ax.set_title(f["title"], fontsize=9)
     return fig
+
+
+def _n(v: Any, fmt: str = ".1f") -> str:
+    return "—" if not isinstance(v, int | float) or v != v else format(v, fmt)
+
+
+def _pair(a: Any, b: Any, fmt: str = ".1f") -> str:
+    return f"{_n(a, fmt)} / {_n(b, fmt)}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The run's tables for the docs (Markdown): figures 4-6 per run with the paper's numbers,
+    the side-by-side with python-zeroconf, and the bytes as the fleet grows."""
+    minutes = result.get("minutes_per_run") or 5.0
+    head = (
+        f"`make bench-paper`, {result.get('mode', 'full')} run: {minutes:g} min of load per "
+        f"run, 10 s beacon, {dig(result, 'machine', 'nproc')} cores; loads in bench-paper.json."
+    )
+    out = [head, ""]
+    out += [
+        "| run | publish p50 / p99 (ms) | unpublish p50 / p99 (ms) | neighbours p50 / p99 (ms) "
+        "| neighbour lists answered /s per robot | CPU % of a core: daemon (discovery) | PSS "
+        "MiB | TX kB / 5 min | RX kB / 5 min | changes seen by every peer within 0.5 s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in result.get("runs", []):
+        lat, res = r.get("latency", {}), r.get("resources", {})
+        per_5 = dig(r, "traffic", "per_5_min_kB") or {}
+        asked = dig(lat, "neighbors", "requests")
+        rate = asked / (minutes * 60) / r["robots"] if isinstance(asked, int) else None
+        seen = dig(r, "seen_by_peers", "within_bound") or {}
+        out.append(
+            f"| {r['config']} "
+            f"| {_pair(dig(lat, 'publish', 'p50_ms'), dig(lat, 'publish', 'p99_ms'))} "
+            f"| {_pair(dig(lat, 'unpublish', 'p50_ms'), dig(lat, 'unpublish', 'p99_ms'))} "
+            f"| {_pair(dig(lat, 'neighbors', 'p50_ms', 'mean'), dig(lat, 'neighbors', 'p99_ms', 'max'))} "  # noqa: E501
+            f"| {_n(rate, ',.0f')} "
+            f"| {_n(dig(res, 'cpu_percent', 'mean'))} "
+            f"({_n(dig(res, 'discovery_cpu_percent', 'mean'), '.2f')}) "
+            f"| {_n(dig(res, 'pss_mib', 'mean'))} "
+            f"| {_n(dig(per_5, 'tx_payload', 'mean'))} | {_n(dig(per_5, 'rx_payload', 'mean'))} "
+            f"| {_pair(seen.get('publish'), seen.get('unpublish'), '.1%')} |"
+        )  # fmt: skip
+    p: dict[str, Any] = PAPER
+
+    def span(key: str) -> str:
+        lo, hi = p[key]
+        return f"{lo:g}-{hi:g}"
+
+    out.append(
+        f"| the paper (its ranges over all runs) | {span('publish_ms')} | {span('unpublish_ms')} "
+        f"| under {p['neighbors_ms_max']:g} | — | {span('cpu_percent')} "
+        f"| under {PAPER_MEMORY_MIB:.0f} | {span('tx_kB_5min')} | {span('rx_kB_5min')} | — |"
+    )
+    rows = dig(result, "side_by_side", "table")
+    if rows:
+        sbs = result["side_by_side"]
+        out += [
+            "",
+            f"Side by side, one lab of {sbs.get('robots')} robots, "
+            f"{sbs.get('publishers_per_robot')} services each under the same churn "
+            f"(SDfR at its {sbs.get('sdfr_beacon_s'):g} s beacon):",
+            "",
+            "| measure | SDfR | python-zeroconf | zeroconf ÷ SDfR | note |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for row in rows:
+            vals = [row["sdfr"], row["zeroconf"], row["ratio"]]
+            cells = [_n(v, "g") if not isinstance(v, str) else v for v in vals]
+            out.append(f"| {row['measure']} | {' | '.join(cells)} | {row.get('note', '')} |")
+    scale = result.get("scale") or []
+    if scale:
+        out += [
+            "",
+            "Bytes per robot as the fleet grows (70 % publishers, no consumers), kB per 5 min:",
+            "",
+            "| robots | TX payload | RX payload | TX frames | RX frames |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for r in scale:
+            per_5 = dig(r, "traffic", "per_5_min_kB") or {}
+            cells = [
+                _n(dig(per_5, k, "mean"))
+                for k in ("tx_payload", "rx_payload", "tx_frame", "rx_frame")
+            ]
+            out.append(f"| {r['robots']} | {' | '.join(cells)} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m bench.paper_figures RESULT.json [--draw DIR]`: the run's tables (Markdown) on
+    stdout, and its figures drawn again."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("result", type=Path, help="a bench-paper.json")
+    p.add_argument("--draw", type=Path, metavar="DIR", help="also draw its figures again in DIR")
+    args = p.parse_args(argv)
+    result = json.loads(args.result.read_text())
+    if args.draw:
+        args.draw.mkdir(parents=True, exist_ok=True)
+        write(figures(result), args.draw)
+    print(markdown(result), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

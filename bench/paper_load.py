@@ -126,6 +126,19 @@ def publisher(
 ) -> None:
     order = board.orders[index]
     delay = plan.publish_delay if plan.first_delay is None else plan.first_delay
+
+    def timed(op: str, method: str, path: str, body: bytes | None, ok: int, sid: str) -> bool:
+        """One request of the load, timed, logged as `op`; False when it failed."""
+        asked = time.time()
+        status, _, dt = w.call(method, path, body)
+        if status != ok:
+            out["errors"].append(float(status))
+            return False
+        out[op].append(dt)
+        ms = round(dt * 1e3, 3)
+        log.write(t=time.time(), op=op, robot=plan.robot, sid=sid, ms=ms, asked=asked)
+        return True
+
     first = True
     while not stop.wait(delay):
         if not first and not plan.churning(time.time()):
@@ -133,20 +146,8 @@ def publisher(
         first, delay = False, plan.publish_delay
         sid = new_service_id()
         body = json.dumps(service_body(plan.robot, index, sid)).encode()
-        asked = time.time()
-        status, _, dt = w.call("POST", "/services", body)
-        if status != 201:
-            out["errors"].append(float(status))
+        if not timed("publish", "POST", "/services", body, 201, sid):
             return
-        out["publish"].append(dt)
-        log.write(
-            t=time.time(),
-            op="publish",
-            robot=plan.robot,
-            sid=sid,
-            ms=round(dt * 1e3, 3),
-            asked=asked,
-        )
         with board.lock:
             order.clear()
             board.published.add(index)
@@ -155,20 +156,8 @@ def publisher(
                 return
         if stop.is_set():
             return
-        asked = time.time()
-        status, _, dt = w.call("DELETE", f"/services/{sid}")
-        if status != 204:
-            out["errors"].append(float(status))
+        if not timed("unpublish", "DELETE", f"/services/{sid}", None, 204, sid):
             return
-        out["unpublish"].append(dt)
-        log.write(
-            t=time.time(),
-            op="unpublish",
-            robot=plan.robot,
-            sid=sid,
-            ms=round(dt * 1e3, 3),
-            asked=asked,
-        )
 
 
 def unpublisher(plan: Plan, board: Board, stop: threading.Event) -> None:

@@ -312,3 +312,12 @@ def spread(values: Iterable[float], ndigits: int = 1) -> dict[str, float]:
         "max": round(max(v), ndigits),
         "mean": round(statistics.fmean(v), ndigits),
     }
+
+
+def dig(d: Any, *keys: str) -> Any:
+    """d[k1][k2]... of a result's JSON, None where a level is missing (a part that failed)."""
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d

@@ -41,6 +41,7 @@ from typing import Any
 
 from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, err, keep_logs
 from bench.paper_measure import (
+    dig,
     mdns_messages,
     per_5_min,
     propagation,
@@ -466,56 +467,48 @@ def table(r: dict[str, Any]) -> list[dict[str, Any]]:
     part = r.get("partition", {})
     row(
         f"{r['partition_s']:g} s partition: each half stops listing the other (s)",
-        _get(part, "sdfr", "halves_dropped_each_other_s"),
-        _get(part, "zeroconf", "halves_dropped_each_other_s"),
+        dig(part, "sdfr", "halves_dropped_each_other_s"),
+        dig(part, "zeroconf", "halves_dropped_each_other_s"),
         "None: not within the partition",
     )
     row(
         "after the merge, every list right again (s)",
-        _get(part, "sdfr", "all_lists_right_after_merge_s"),
-        _get(part, "zeroconf", "all_lists_right_after_merge_s"),
+        dig(part, "sdfr", "all_lists_right_after_merge_s"),
+        dig(part, "zeroconf", "all_lists_right_after_merge_s"),
         f"None: not within {r['timing_s']['after_merge']:g} s",
     )
     tr = r.get("traffic", {}).get("per_5_min_kB", {})
     for key, label in (("tx_payload", "TX"), ("rx_payload", "RX")):
         row(
             f"{label} kB per robot per 5 min (UDP payload; mean of robots)",
-            _get(tr, "sdfr", key, "mean"),
-            _get(tr, "zeroconf", key, "mean"),
+            dig(tr, "sdfr", key, "mean"),
+            dig(tr, "zeroconf", key, "mean"),
         )
     for key, label in (("tx_frame", "TX"), ("rx_frame", "RX")):
         row(
             f"{label} kB per robot per 5 min (whole frames)",
-            _get(tr, "sdfr", key, "mean"),
-            _get(tr, "zeroconf", key, "mean"),
+            dig(tr, "sdfr", key, "mean"),
+            dig(tr, "zeroconf", key, "mean"),
         )
     res = r.get("resources", {})
     row(
         "CPU per robot, % of one core (mean)",
-        _get(res, "sdfr", "cpu_percent", "mean"),
-        _get(res, "zeroconf", "cpu_percent", "mean"),
+        dig(res, "sdfr", "cpu_percent", "mean"),
+        dig(res, "zeroconf", "cpu_percent", "mean"),
         "SDfR: the daemon's 3 processes (API answering the watcher every 50 ms included); "
         "zeroconf: the node's process",
     )
     row(
         "PSS per robot, MiB (mean of the robots' max)",
-        _get(res, "sdfr", "pss_mib", "mean"),
-        _get(res, "zeroconf", "pss_mib", "mean"),
+        dig(res, "sdfr", "pss_mib", "mean"),
+        dig(res, "zeroconf", "pss_mib", "mean"),
     )
     seen = r.get("seen_by_peers", {})
     row(
         "churn: a change listed by each peer, p50 / p99 (ms)",
-        f"{_get(seen, 'sdfr', 'publish', 'p50_ms')} / {_get(seen, 'sdfr', 'publish', 'p99_ms')}",
-        f"{_get(seen, 'zeroconf', 'publish', 'p50_ms')} / "
-        f"{_get(seen, 'zeroconf', 'publish', 'p99_ms')}",
+        f"{dig(seen, 'sdfr', 'publish', 'p50_ms')} / {dig(seen, 'sdfr', 'publish', 'p99_ms')}",
+        f"{dig(seen, 'zeroconf', 'publish', 'p50_ms')} / "
+        f"{dig(seen, 'zeroconf', 'publish', 'p99_ms')}",
         "publishes, from the moment each was asked for",
     )
     return rows
-
-
-def _get(d: Any, *keys: str) -> Any:
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return None
-        d = d[k]
-    return d

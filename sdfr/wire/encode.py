@@ -381,17 +381,7 @@ def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
             raise ValueError("a compact search is a unicast one, with MX 0")
         _check_text("ST", msg.st)
         lines.append(f"ST: {msg.st}")
-        if msg.seq is not None:
-            _check_range("seq", msg.seq, 0, MAX_SEQ)
-            lines.append(f"X-SDFR-SEQ: {msg.seq}")
-        if msg.want is not None:
-            lines.append(f"X-SDFR-WANT: {_want_text(msg.want)}")
-        if msg.want_version is not None:
-            _check_range("want_version", msg.want_version, 0, MAX_VERSION)
-            lines.append(f"X-SDFR-WANT-VERSION: {msg.want_version}")
-        if msg.have is not None:
-            _check_range("have", msg.have, 0, MAX_VERSION)
-            lines.append(f"X-SDFR-HAVE: {msg.have}")
+        lines += _search_lines(msg)
     elif isinstance(msg, Response):
         start = _OK_LINE
         if msg.seq is None or msg.location or msg.max_age:
@@ -482,18 +472,7 @@ def _discovery_lines(msg: Discovery, group: str, port: int) -> list[str]:
             raise ValueError("seq, want, want_version and have need an origin (X-SDFR-*)")
         return lines
     lines += _origin_lines(msg.origin, "discovery")
-    if msg.seq is not None:
-        _check_range("seq", msg.seq, 0, MAX_SEQ)
-        lines.append(f"X-SDFR-SEQ: {msg.seq}")
-    if msg.want is not None:
-        lines.append(f"X-SDFR-WANT: {_want_text(msg.want)}")
-    if msg.want_version is not None:
-        _check_range("want_version", msg.want_version, 0, MAX_VERSION)
-        lines.append(f"X-SDFR-WANT-VERSION: {msg.want_version}")
-    if msg.have is not None:
-        _check_range("have", msg.have, 0, MAX_VERSION)
-        lines.append(f"X-SDFR-HAVE: {msg.have}")
-    return lines
+    return lines + _search_lines(msg)
 
 
 def _response_lines(msg: Response) -> list[str]:
@@ -595,3 +574,21 @@ def _host(group: str, port: int) -> str:
     if len(host) > MAX_HOST:
         raise ValueError(f"HOST {host!r} is longer than {MAX_HOST} characters")
     return host
+
+
+def _search_lines(msg: Discovery) -> list[str]:
+    """A search's SDfR lines beyond its origin, the same in both forms: the ping's sequence
+    number, what a fetch wants, and the set its sender holds."""
+    lines = []
+    if msg.seq is not None:
+        _check_range("seq", msg.seq, 0, MAX_SEQ)
+        lines.append(f"X-SDFR-SEQ: {msg.seq}")
+    if msg.want is not None:
+        lines.append(f"X-SDFR-WANT: {_want_text(msg.want)}")
+    if msg.want_version is not None:
+        _check_range("want_version", msg.want_version, 0, MAX_VERSION)
+        lines.append(f"X-SDFR-WANT-VERSION: {msg.want_version}")
+    if msg.have is not None:
+        _check_range("have", msg.have, 0, MAX_VERSION)
+        lines.append(f"X-SDFR-HAVE: {msg.have}")
+    return lines

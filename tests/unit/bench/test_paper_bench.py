@@ -133,3 +133,35 @@ def test_zeroconf_instance_names_carry_robot_and_service() -> None:
     name = instance("r3", "p17x0000abcd")
     assert name.endswith(TYPE) and owner(name) == ("r3", "p17x0000abcd")
     assert owner("printer._ipp._tcp.local.") is None and owner(f"nobody.{TYPE}") is None
+
+
+def test_the_docs_tables_say_what_each_run_measured_and_what_is_missing() -> None:
+    from bench.paper_figures import markdown
+
+    run = {
+        "config": "static-6-70",
+        "robots": 6,
+        "latency": {
+            "publish": {"p50_ms": 12.34, "p99_ms": 50.0},
+            "unpublish": {"p50_ms": 8.0, "p99_ms": 30.0},
+            "neighbors": {"p50_ms": {"mean": 4.0}, "p99_ms": {"max": 9.0}, "requests": 180_000},
+        },
+        "resources": {"cpu_percent": {"mean": 40.0}, "discovery_cpu_percent": {"mean": 0.5},
+                      "pss_mib": {"mean": 35.0}},
+        "traffic": {"per_5_min_kB": {"tx_payload": {"mean": 47.3}, "rx_payload": {"mean": 176.2}}},
+        "seen_by_peers": {"within_bound": {"publish": 1.0, "unpublish": 0.995}},
+    }  # fmt: skip
+    failed = {"config": "static-2-30", "robots": 2, "latency": {}, "resources": {}}
+    text = markdown({"mode": "full", "minutes_per_run": 5.0, "machine": {"nproc": 2},
+                     "runs": [run, failed], "scale": [{"robots": 20, "traffic": {}}]})  # fmt: skip
+    lines = text.splitlines()
+    row = next(line for line in lines if line.startswith("| static-6-70"))
+    # 180,000 answers over 5 minutes on 6 robots: 100 a second each
+    assert row == (
+        "| static-6-70 | 12.3 / 50.0 | 8.0 / 30.0 | 4.0 / 9.0 | 100 | 40.0 (0.50) | 35.0 "
+        "| 47.3 | 176.2 | 100.0% / 99.5% |"
+    )
+    gap = next(line for line in lines if line.startswith("| static-2-30"))
+    assert gap.count("—") == 14 and "None" not in gap
+    assert any(line.startswith("| the paper") and "220-320 | 540-850" in line for line in lines)
+    assert "| 20 | — | — | — | — |" in lines
