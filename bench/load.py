@@ -18,6 +18,16 @@ import time
 from typing import Any
 
 
+def merge(per_thread: list[dict[str, list[float]]]) -> tuple[dict[str, list[float]], list[float]]:
+    """The load's threads' samples by request kind, and their failures apart."""
+    merged: dict[str, list[float]] = {"publish": [], "unpublish": [], "neighbors": []}
+    errors: list[float] = []
+    for out in per_thread:
+        for k, v in out.items():
+            (errors if k == "errors" else merged[k]).extend(v)
+    return merged, errors
+
+
 def summary(samples: list[float]) -> dict[str, object]:
     if not samples:
         return {"count": 0}
@@ -228,11 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         t.start()
     for t in threads:
         t.join()
-    merged: dict[str, list[float]] = {"publish": [], "unpublish": [], "neighbors": []}
-    errors: list[float] = []
-    for out in per_thread:
-        for k, v in out.items():
-            (errors if k == "errors" else merged[k]).extend(v)
+    merged, errors = merge(per_thread)
     result: dict[str, Any] = {k: summary(v) for k, v in merged.items()}
     result["server"] = server_side(before, server_histograms(probe))
     result["errors"] = len(errors)

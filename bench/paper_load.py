@@ -40,7 +40,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import IO, Any
 
-from bench.load import Worker, summary
+from bench.load import Worker, merge, summary
 from sdfr.client import new_service_id
 
 
@@ -238,11 +238,7 @@ def run(
     ended = time.time()
     for t in threads:
         t.join(timeout=30)
-    merged: dict[str, list[float]] = {"publish": [], "unpublish": [], "neighbors": []}
-    errors: list[float] = []
-    for out in per_thread:
-        for k, v in out.items():
-            (errors if k == "errors" else merged[k]).extend(v)
+    merged, errors = merge(per_thread)
     result: dict[str, Any] = {k: summary(v) for k, v in merged.items()}
     result.update(
         robot=plan.robot,
