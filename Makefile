@@ -91,7 +91,7 @@ bench-traffic: $(STAMP)
 
 # The paper's evaluation under its load (section 6, figures 4-6): static 2/4/6 robots x 30/50/70 %
 # publishers and the dynamic scenario, 5 minutes each, then python-zeroconf side by side and the
-# bytes per robot at 2, 6 and 20 robots (~1.5 h; ARGS=--quick: ~10 min); root. One run folder
+# bytes per robot at 2, 6 and 20 robots (~80 min; ARGS=--quick: ~10 min); root. One run folder
 # runs/bench-paper-<time>/ with the figures (PNG and JSON); the result in runs/bench-paper.json.
 bench-paper: $(STAMP)
 	mkdir -p runs
