@@ -25,6 +25,10 @@ from sdfr.protocol.state import CoreState
 from sdfr.wire import WANT_ALL, Alive, Byebye, Discovery, Origin, Reject, Response, Update
 
 _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: "alive"}
+#: A peer's smoothed RTT is stored (and listed) again once it moved from the stored one by more
+#: than this share of it and this many seconds: a true figure without a write per round trip.
+RTT_TELL_SHARE = 0.2
+RTT_TELL_S = 0.002
 
 
 class Core(CoreState):
@@ -264,11 +268,12 @@ class Core(CoreState):
 
     def take_dirty(self) -> list[PeerRecord]:
         """Proven peers whose stored view changed since the last call."""
-        views = [
-            self.view(self.peers[r])
-            for r in sorted(self._dirty)
-            if r in self.peers and self.peers[r].proven
-        ]
+        views = []
+        for r in sorted(self._dirty):
+            peer = self.peers.get(r)
+            if peer is not None and peer.proven:
+                peer.rtt_told = peer.rtt
+                views.append(self.view(peer))
         self._dirty.clear()
         return views
 
@@ -690,5 +695,8 @@ class Core(CoreState):
 
     def _round_trip(self, peer: Peer, sample: float, src: Addr, now: float) -> None:
         peer.rtt = sample if peer.rtt is None else 0.8 * peer.rtt + 0.2 * sample
+        told = peer.rtt_told
+        if told is None or abs(peer.rtt - told) > max(RTT_TELL_S, RTT_TELL_SHARE * told):
+            self._dirty.add(peer.robot_id)  # the stored and listed RTT is no longer true
         self._answered[src] = now
         self._settle_ping(peer, ok=True)

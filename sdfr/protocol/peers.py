@@ -67,6 +67,8 @@ class Peer:
     byebye_boot: int | None = None
     pings: deque[bool] = field(default_factory=deque)
     rtt: float | None = None
+    #: The smoothed RTT in the last view handed out (stored, listed).
+    rtt_told: float | None = None
     next_ping: float = math.inf
     fetch: _Fetch | None = None
     window: ReplayWindow = field(default_factory=ReplayWindow)

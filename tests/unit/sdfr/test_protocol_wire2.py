@@ -230,3 +230,22 @@ def test_a_churning_fleet_stays_within_500ms_and_never_fetches() -> None:
     assert max(lags) <= 0.5 and statistics.median(lags) < 0.1
     for name in names:
         assert sent(net, name, "fetch", since=t0) == []
+
+
+def test_the_listed_rtt_follows_a_link_that_slows_while_every_round_trip_succeeds() -> None:
+    net = SimNet(seed=209)
+    names = product_fleet(net, 3, n_services=2)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(3 * BEACON)
+    r1 = net.nodes["r1"].core
+    r1.take_dirty()
+    net.run_for(10 * BEACON)
+    # Steady 1-4 ms round trips: the indicator stays 1.0, the RTT barely moves: no writes.
+    assert r1.peers["r2"].indicator == 1.0 and r1.take_dirty() == []
+    net.delay = (0.05, 0.05)  # every link now 50 ms each way: no round trip is lost
+    net.run_for(20 * BEACON)
+    listed = {v.robot_id: v for v in r1.take_dirty()}
+    assert listed["r2"].indicator == 1.0
+    assert listed["r2"].rtt_ms is not None and 80 <= listed["r2"].rtt_ms <= 100
+    net.run_for(10 * BEACON)  # settled: at most a write or two as it converges on 100 ms
+    assert len([v for v in r1.take_dirty() if v.robot_id == "r2"]) <= 1
