@@ -37,6 +37,11 @@ MCAST_SET_GAP = 1.0
 FETCH_SETS_PER_S = 2.0
 #: Searchers one multicast answer collects at most.
 MAX_REPLY_TO = 64
+#: For this many seconds after a peer asked for a catch-up (it missed a delta: links lose
+#: datagrams here), each multicast delta also carries the steps of the last DELTA_STEPS - 1
+#: before it, so that a robot that missed those applies it without asking.
+REPAIR_MEMORY = 60.0
+DELTA_STEPS = 2
 
 
 #: The product's protocol defaults, written here once: `CoreConfig` and sdfrd's `Config`

@@ -564,6 +564,8 @@ class Core(CoreState):
             peer.deferred = (dst, only)
             self._challenge(peer, dst, now)
             return
+        if have is not None:
+            self._repair_asked = now  # it missed a delta: ours carry the steps before them
         compact = self._compact_for(dst)
         parts = self._update_parts(compact)
         catch_up = self._catch_up(have, compact) if have is not None and only is None else None
@@ -633,27 +635,44 @@ class Core(CoreState):
         self._dirty.add(peer.robot_id)
 
     def _apply_delta(self, peer: Peer, msg: Update) -> None:
-        """Turn the set we hold into the announced one; without its base, fetch it whole."""
+        """Turn the set we hold into the announced one, from the delta's step whose base we
+        hold on (its earlier steps repair deltas we missed); without one, fetch it whole."""
         o = msg.origin
-        if peer.held is None or peer.held[:2] != (o.boot_id, msg.base):
+        if peer.held is None or peer.held[0] != o.boot_id:
             return
-        if msg.packed is not None and (peer.dictionary is None or peer.dictionary[0] != peer.held):
-            peer.dictionary = (peer.held, wire.delta_dictionary(peer.services))
-        dictionary = peer.dictionary[1] if peer.dictionary is not None else None
-        unpacked = wire.unpack_delta(msg, peer.services, dictionary)
-        if isinstance(unpacked, Reject):
-            self.counters.rejects[unpacked.reason] += 1
+        bases = [base for base, _ in msg.steps] + [msg.base]
+        if peer.held[1] not in bases:
             return
-        msg = unpacked
-        changed = {s.id: s for s in msg.services}
-        gone = set(msg.removed)
-        services = [changed.pop(s.id, s) for s in peer.services if s.id not in gone]
-        services.extend(changed.values())
-        result = tuple(services)
-        if service_digest(result) != o.digest:
+        first = bases.index(peer.held[1])
+        services = peer.services
+        for i in range(first, len(bases)):
+            packed = (
+                msg.steps[i][1].startswith(wire.PACKED)
+                if i < len(msg.steps)
+                else msg.packed is not None
+            )
+            dictionary = None
+            if i == first and packed:
+                # The set we hold: its dictionary is kept for the next delta from it.
+                if peer.dictionary is None or peer.dictionary[0] != peer.held:
+                    peer.dictionary = (peer.held, wire.delta_dictionary(services))
+                dictionary = peer.dictionary[1]
+            if i < len(msg.steps):
+                read = wire.read_step(msg.steps[i][1], services, dictionary)
+            else:
+                step = wire.unpack_delta(msg, services, dictionary)
+                read = step if isinstance(step, Reject) else (step.services, step.removed)
+            if isinstance(read, Reject):
+                self.counters.rejects[read.reason] += 1
+                return
+            changed = {s.id: s for s in read[0]}
+            gone = set(read[1])
+            kept = [changed.pop(s.id, s) for s in services if s.id not in gone]
+            services = (*kept, *changed.values())
+        if service_digest(services) != o.digest:
             self.counters.rejects["bad-digest"] += 1
             return
-        peer.services = result
+        peer.services = services
         peer.held = (o.boot_id, o.version, o.digest)
         peer.fetch = None
         self._dirty.add(peer.robot_id)

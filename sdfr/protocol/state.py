@@ -9,6 +9,7 @@ import math
 import random
 from collections import OrderedDict
 from collections.abc import Sequence
+from dataclasses import replace
 
 from sdfr import auth, wire
 from sdfr.auth import OPEN, Keyring
@@ -17,10 +18,12 @@ from sdfr.model import Service, service_digest
 from sdfr.protocol.config import (
     CHALLENGE_BURST,
     CHALLENGE_RATE,
+    DELTA_STEPS,
     MAX_SOURCES,
     MCAST_SET_GAP,
     PLAIN_BURST,
     PLAIN_RATE,
+    REPAIR_MEMORY,
     SOURCE_BURST,
     SOURCE_RATE,
     Addr,
@@ -96,6 +99,11 @@ class CoreState:
         self._recent: OrderedDict[int, tuple[Service, ...]] = OrderedDict()
         self._last_change_sent = -math.inf
         self._dictionary_cache: tuple[int, bytes] | None = None
+        #: The last multicast deltas' own steps, (base, version, body), oldest first, while
+        #: each followed the one before: what the next delta carries when repairing.
+        self._steps: list[tuple[int, int, bytes]] = []
+        #: When a peer last asked for a catch-up (what changed since a set it holds).
+        self._repair_asked = -math.inf
         #: Beacons sent as pings, by sequence number.
         self._group_pings: dict[int, _GroupPing] = {}
         #: Address -> the wire version of the peer there (what unicasts to it may be).
@@ -280,6 +288,7 @@ class CoreState:
             self._recent.popitem(last=False)
         self._last_change_sent = now
         self._update_at = math.inf
+        self._steps = []  # a delta sent now puts its own step back (`_announce_change`)
 
     def _origin(self) -> Origin:
         version, _, digest = self._advertised()
@@ -371,23 +380,40 @@ class CoreState:
         return self._parts_cache[1]
 
     def _announce_change(self, now: float) -> None:
-        """Multicast what changed since the last announcement: a delta when it is smaller."""
+        """Multicast what changed since the last announcement: a delta when it is smaller.
+
+        While peers lately asked for catch-ups, the delta also carries the steps of the
+        deltas just before it (`REPAIR_MEMORY`), so that a robot that missed them catches up
+        from this one datagram rather than by asking."""
         prev = self._announced
         if prev is None or prev[0] >= self.version:
             self._send_update_parts(None, now)
             return
+        history = self._steps
+        chained = history if history and history[-1][1] == prev[0] else []
+        steps = chained if now - self._repair_asked <= REPAIR_MEMORY else []
         self._announce(now)
         compact = self._compact_for(None)
-        data = self._delta(prev[0], prev[1], compact)
+        data = self._delta(prev[0], prev[1], compact, [(b, body) for b, _, body in steps])
         if data is None:  # too large for one datagram, or no smaller than the whole set
             self._send_update_parts(None, now)
             return
+        if compact and DELTA_STEPS > 1:
+            own = (prev[0], self.version, wire.last_step(data))
+            self._steps = [*chained, own][1 - DELTA_STEPS :]
         self._emit(data, None, "update")
 
-    def _delta(self, base: int, had: tuple[Service, ...], compact: bool) -> bytes | None:
+    def _delta(
+        self,
+        base: int,
+        had: tuple[Service, ...],
+        compact: bool,
+        steps: Sequence[tuple[int, bytes]] = (),
+    ) -> bytes | None:
         """The datagram turning set `base` (`had`) into the one we tell of; None when it would
         not fit one datagram, or carry every service of the set anyway (the whole set, which
-        needs no base, is then no bigger)."""
+        needs no base, is then no bigger).  A compact one carries `steps` before its own when
+        they fit."""
         old = {s.id: s for s in had}
         _, services, _ = self._advertised()
         new_ids = {s.id for s in services}
@@ -400,12 +426,18 @@ class CoreState:
         cfg = self.config
         # Compact: deflated against the base set, which every robot that can apply it holds.
         dictionary = self._dictionary(base, had) if compact else None
-        try:
-            return wire.encode(
-                delta, group=cfg.group, port=cfg.port, compact=compact, dictionary=dictionary
-            )
-        except ValueError:
-            return None
+        for chain in (tuple(steps), ()) if compact and steps else ((),):
+            try:
+                return wire.encode(
+                    replace(delta, steps=chain),
+                    group=cfg.group,
+                    port=cfg.port,
+                    compact=compact,
+                    dictionary=dictionary,
+                )
+            except ValueError:
+                continue
+        return None
 
     def _dictionary(self, version: int, services: tuple[Service, ...]) -> bytes:
         """`wire.delta_dictionary` of our set `version`, kept for the next delta from it."""

@@ -12,11 +12,13 @@ and `decode`.
 
 from __future__ import annotations
 
-from sdfr.wire.decode import decode, unpack_delta
+from sdfr.wire.decode import decode, read_step, unpack_delta
 from sdfr.wire.encode import (
     check_service_fits,
+    delta_step,
     encode,
     encode_update_parts,
+    last_step,
     max_service_json_bytes,
     parts_needed,
     service_json_size,
@@ -37,6 +39,7 @@ from sdfr.wire.messages import (
     MAX_MX_ACCEPTED,
     MAX_PARTS,
     MAX_SEQ,
+    MAX_STEPS,
     MAX_UNPACKED,
     MAX_VERSION,
     MESSAGE_TYPES,
@@ -77,6 +80,7 @@ __all__ = [
     "MAX_MX_ACCEPTED",
     "MAX_PARTS",
     "MAX_SEQ",
+    "MAX_STEPS",
     "MAX_UNPACKED",
     "MAX_VERSION",
     "MESSAGE_TYPES",
@@ -99,11 +103,14 @@ __all__ = [
     "check_service_fits",
     "decode",
     "delta_dictionary",
+    "delta_step",
     "encode",
     "encode_update_parts",
     "fleet_target",
+    "last_step",
     "max_service_json_bytes",
     "parts_needed",
+    "read_step",
     "service_json_size",
     "unpack_delta",
     "usn",

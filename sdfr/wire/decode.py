@@ -3,6 +3,7 @@ raises: a bad datagram is a value."""
 
 import zlib
 from collections.abc import Sequence
+from itertools import pairwise
 
 from sdfr.errors import ValidationError
 from sdfr.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
@@ -22,6 +23,7 @@ from sdfr.wire.messages import (
     MAX_MX_ACCEPTED,
     MAX_PARTS,
     MAX_SEQ,
+    MAX_STEPS,
     MAX_UNPACKED,
     MAX_VERSION,
     PACKED,
@@ -188,9 +190,10 @@ def _decode_compact(
 ) -> Message | Reject:
     """A compact datagram (see `sdfr.wire.encode`): the origin in one X-SDFR line."""
     words = headers["X-SDFR"].split(" ")
-    if len(words) != 6:
-        raise _Rejected("bad-value", f"X-SDFR {headers['X-SDFR'][:80]!r}: not 6 fields")
-    kind, fleet_text, robot_id, boot_text, version_text, digest = words
+    if len(words) not in (6, 7):
+        raise _Rejected("bad-value", f"X-SDFR {headers['X-SDFR'][:80]!r}: not 6 or 7 fields")
+    kind, fleet_text, robot_id, boot_text, version_text, digest = words[:6]
+    extra = words[6] if len(words) == 7 else None
     got = _int_value("X-SDFR fleet", fleet_text, 0, MAX_FLEET)
     if fleet is not None and got != fleet:
         return Reject("other-fleet", f"fleet {got}, not {fleet}")
@@ -208,45 +211,90 @@ def _decode_compact(
         digest,
         WIRE_COMPACT,
     )
-    seq = _optional_int(headers, "X-SDFR-SEQ", MAX_SEQ)
+    if kind == "update" and extra is not None:
+        return _decode_compact_delta(origin, headers, body, extra)
+    if kind in ("update", "byebye") and extra is not None:
+        raise _Rejected("bad-value", f"X-SDFR {kind} with a seventh field")
+    seq = None if extra is None else _int_value("X-SDFR seq", extra, 0, MAX_SEQ)
     if kind == "discovery":
         st = _need(headers, "ST")
         if not st:
             raise _Rejected("bad-value", "ST is empty")
-        want_text = headers.get("X-SDFR-WANT")
-        want = None if want_text is None else _parse_want(want_text)
-        want_version = _optional_int(headers, "X-SDFR-WANT-VERSION", MAX_VERSION)
-        have = _optional_int(headers, "X-SDFR-HAVE", MAX_VERSION)
+        want, want_version, have = _compact_want(headers.get("X-SDFR-WANT"))
         return Discovery(origin, st, 0, seq, want, want_version, False, have)
     if kind == "response":
         if seq is None:
-            raise _Rejected("missing-header", "X-SDFR-SEQ (a compact response is a ping reply)")
+            raise _Rejected("bad-value", "X-SDFR response without a seq (it is a ping reply)")
         st = headers.get("ST") or f"uuid:{robot_id}"
         return Response(origin, st, "", 0, seq, _optional_int(headers, "X-SDFR-PING", MAX_SEQ))
     if kind == "byebye":
         return Byebye(origin)
+    location = _compact_location(headers)
+    if kind == "alive":
+        return Alive(origin, location, 0, seq)
+    part_text = headers.get("X-SDFR-PART")
+    if part_text is None:
+        raise _Rejected("bad-value", "a compact update has X-SDFR-PART or a base, one")
+    part, parts = _decode_part(part_text)
+    if body.startswith(PACKED):
+        body = _inflate(body[len(PACKED) :], None)
+    services, _ = _decode_services(headers, body, delta=False)
+    return Update(origin, location, 0, part, parts, services)
+
+
+def _compact_location(headers: dict[str, str]) -> str:
     location = headers.get("LOCATION", "")
     if len(location) > MAX_LOCATION or ("LOCATION" in headers and not location):
         raise _Rejected("bad-value", f"LOCATION must be 1..{MAX_LOCATION} characters")
-    if kind == "alive":
-        return Alive(origin, location, 0, seq)
-    part_text, base_text = headers.get("X-SDFR-PART"), headers.get("X-SDFR-BASE")
-    if (part_text is None) == (base_text is None):
-        raise _Rejected("bad-value", "a compact update has X-SDFR-PART or X-SDFR-BASE, one")
-    if part_text is not None:
-        part, parts = _decode_part(part_text)
-        if body.startswith(PACKED):
-            body = _inflate(body[len(PACKED) :], None)
-        services, _ = _decode_services(headers, body, delta=False)
-        return Update(origin, location, 0, part, parts, services)
-    assert base_text is not None
-    base = _int_value("X-SDFR-BASE", base_text, 0, MAX_VERSION)
-    if base >= origin.version:
-        raise _Rejected("bad-value", f"X-SDFR-BASE {base} on version {origin.version}")
-    if body.startswith(PACKED):  # only a robot holding the base set can read it
-        return Update(origin, location, 0, 0, 1, (), base, (), body[len(PACKED) :])
-    services, removed = _decode_services(headers, body, delta=True, compact=True)
-    return Update(origin, location, 0, 0, 1, services, base, removed)
+    return location
+
+
+def _compact_want(text: str | None) -> tuple[Want, int | None, int | None]:
+    """A compact fetch's ``X-SDFR-WANT: <parts> [<version> [<have>]]`` ("-": none)."""
+    if text is None:
+        return None, None, None
+    words = text.split(" ")
+    if not 1 <= len(words) <= 3 or words[-1] == "-":
+        raise _Rejected("bad-value", f"X-SDFR-WANT {text[:80]!r}: not <parts> [<version> [<have>]]")
+    words += ["-"] * (3 - len(words))
+    want = None if words[0] == "-" else _parse_want(words[0])
+    version = (
+        None if words[1] == "-" else _int_value("X-SDFR-WANT version", words[1], 0, MAX_VERSION)
+    )
+    have = None if words[2] == "-" else _int_value("X-SDFR-WANT have", words[2], 0, MAX_VERSION)
+    return want, version, have
+
+
+def _decode_compact_delta(
+    origin: Origin, headers: dict[str, str], body: bytes, chain: str
+) -> Update:
+    """A compact delta: its bases ``<base>/<length>,...,<base>`` and body (earlier steps'
+    bodies, then its own)."""
+    if "X-SDFR-PART" in headers:
+        raise _Rejected("bad-value", "a compact update has X-SDFR-PART or a base, one")
+    location = _compact_location(headers)
+    fields = chain.split(",")
+    if len(fields) > MAX_STEPS:
+        raise _Rejected("bad-value", f"a delta of {len(fields)} steps, more than {MAX_STEPS}")
+    steps: list[tuple[int, bytes]] = []
+    at = 0
+    for field in fields[:-1]:
+        base_text, slash, length_text = field.partition("/")
+        if not slash:
+            raise _Rejected("bad-value", f"delta step {field[:40]!r}: not <base>/<length>")
+        base = _int_value("delta step base", base_text, 0, MAX_VERSION)
+        length = _int_value("delta step length", length_text, 1, len(body) - at)
+        steps.append((base, body[at : at + length]))
+        at += length
+    base = _int_value("delta base", fields[-1], 0, MAX_VERSION)
+    bases = [b for b, _ in steps] + [base, origin.version]
+    if any(b >= nxt for b, nxt in pairwise(bases)):
+        raise _Rejected("bad-value", f"delta bases {bases[:-1]!r} on version {origin.version}")
+    own = body[at:]
+    if own.startswith(PACKED):  # only a robot holding the base set can read it
+        return Update(origin, location, 0, 0, 1, (), base, (), own[len(PACKED) :], tuple(steps))
+    services, removed = _decode_services(headers, own, delta=True, compact=True)
+    return Update(origin, location, 0, 0, 1, services, base, removed, None, tuple(steps))
 
 
 def _inflate(data: bytes, dictionary: bytes | None) -> bytes:
@@ -273,12 +321,27 @@ def unpack_delta(
     `dictionary`: `delta_dictionary(base)` when the caller has it already."""
     if msg.packed is None:
         return msg
+    read = read_step(PACKED + msg.packed, base, dictionary)
+    if isinstance(read, Reject):
+        return read
+    services, removed = read
+    return Update(
+        msg.origin, msg.location, msg.max_age, 0, 1, services, msg.base, removed, None, msg.steps
+    )
+
+
+def read_step(
+    body: bytes, base: Sequence[Service], dictionary: bytes | None = None
+) -> tuple[tuple[Service, ...], tuple[str, ...]] | Reject:
+    """One step of a compact delta (`Update.steps`) read against its base set `base`: the
+    services it adds or replaces and the ids it removes; a Reject when it does not inflate or
+    parse.  `dictionary`: `delta_dictionary(base)` when the caller has it already."""
     try:
-        body = _inflate(msg.packed, dictionary or delta_dictionary(base))
-        services, removed = _decode_services({}, body, delta=True, compact=True)
+        if body.startswith(PACKED):
+            body = _inflate(body[len(PACKED) :], dictionary or delta_dictionary(base))
+        return _decode_services({}, body, delta=True, compact=True)
     except _Rejected as rej:
         return Reject(rej.reason, rej.detail)
-    return Update(msg.origin, msg.location, msg.max_age, 0, 1, services, msg.base, removed)
 
 
 def _decode_response(headers: dict[str, str]) -> Response:

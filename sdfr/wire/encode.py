@@ -4,6 +4,7 @@ import zlib
 from collections import Counter
 from collections.abc import Sequence
 from functools import cache, lru_cache
+from itertools import pairwise
 from typing import Literal
 
 from sdfr.errors import ValidationError
@@ -29,6 +30,7 @@ from sdfr.wire.messages import (
     MAX_MX,
     MAX_PARTS,
     MAX_SEQ,
+    MAX_STEPS,
     MAX_VERSION,
     PACKED,
     SERVER,
@@ -64,12 +66,15 @@ def encode(
 
     `compact`: the form only SDfR robots of wire version 2 read (`decode` reads both).  The
     origin's seven header lines become one (``X-SDFR: <type> <fleet> <robot> <boot> <version>
-    <digest>``) and the lines only a UPnP control point needs go (HOST, MAN, NT, NTS, USN,
+    <digest> [<field>]``, the field a ping's or beacon's sequence number, a ping reply's, or a
+    delta's base; a fetch's three lines become ``X-SDFR-WANT: <parts> <version> [<have>]``)
+    and the lines only a UPnP control point needs go (HOST, MAN, NT, NTS, USN,
     SERVER, CACHE-CONTROL, CONFIGID, CONTENT-TYPE, CONTENT-LENGTH; LOCATION unless given): a
     beacon takes about 75 bytes instead of 430.  Searches only by unicast (pings, fetches),
     responses only as ping replies; plain SSDP clients always get the full form.  A compact
     delta's body is deflated against `dictionary` (`delta_dictionary` of its base set) when
-    given and that is shorter.
+    given and that is shorter; a delta may carry earlier steps (`Update.steps`: its base
+    field is then ``<base>/<length>,...,<base>`` and its body their bodies, then its own).
     """
     if compact:
         return _compact(msg, dictionary)
@@ -78,6 +83,8 @@ def encode(
         blobs = [_service_json(s) for s in msg.services]
         _check_unique_ids(msg.services)
         prefix = _update_prefix(msg.origin, msg.location, msg.max_age, _host(group, port))
+        if msg.steps:
+            raise ValueError("a delta's earlier steps go only in the compact form")
         if msg.base is not None:
             body = _delta_body(msg)
             prefix += f"X-SDFR-BASE: {msg.base}\r\n".encode()
@@ -357,15 +364,73 @@ _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: 
          Byebye: "byebye"}  # fmt: skip
 
 
-def _compact_head(origin: Origin, kind: str, start: str = _NOTIFY_LINE) -> bytes:
-    """The start line and the origin's one line of a compact datagram."""
+def _compact_head(
+    origin: Origin, kind: str, start: str = _NOTIFY_LINE, extra: str | None = None
+) -> bytes:
+    """The start line and the origin's one line of a compact datagram, with the type's one
+    optional field last (a ping's sequence number, a delta's base)."""
     _check_origin(origin)
     if origin.wire < WIRE_COMPACT:
         raise ValueError(f"a compact datagram comes from wire {WIRE_COMPACT}, not {origin.wire}")
+    tail = "" if extra is None else f" {extra}"
     return (
         f"{start}\r\nX-SDFR: {kind} {origin.fleet} {origin.robot_id} {origin.boot_id} "
-        f"{origin.version} {origin.digest}\r\n"
+        f"{origin.version} {origin.digest}{tail}\r\n"
     ).encode()
+
+
+def _seq_text(seq: int | None) -> str | None:
+    if seq is None:
+        return None
+    _check_range("seq", seq, 0, MAX_SEQ)
+    return str(seq)
+
+
+def _compact_fetch(msg: Discovery) -> list[str]:
+    """A compact search's fetch, in one line: ``X-SDFR-WANT: <parts> [<version> [<have>]]``
+    ("-" for one it has not; none of them: no line)."""
+    if msg.want_version is not None:
+        _check_range("want_version", msg.want_version, 0, MAX_VERSION)
+    if msg.have is not None:
+        _check_range("have", msg.have, 0, MAX_VERSION)
+    words = [
+        "-" if msg.want is None else _want_text(msg.want),
+        "-" if msg.want_version is None else str(msg.want_version),
+        "-" if msg.have is None else str(msg.have),
+    ]
+    while words and words[-1] == "-":
+        words.pop()
+    return [f"X-SDFR-WANT: {' '.join(words)}"] if words else []
+
+
+def delta_step(msg: Update, dictionary: bytes | None = None) -> bytes:
+    """A compact delta's own step as it goes on the wire: its body, deflated against
+    `dictionary` (`delta_dictionary` of its base set) when that is shorter."""
+    body = _delta_body(msg, compact=True)
+    return _pack_body(body, dictionary) if dictionary is not None else body
+
+
+def last_step(data: bytes) -> bytes:
+    """The body of a compact delta's own (last) step, out of the datagram `encode` made: what
+    the next delta may carry as an earlier step (`Update.steps`)."""
+    end = data.index(b"\r\n\r\n")
+    line = data.index(b"\r\nX-SDFR: ") + 2
+    field = data[line : data.index(b"\r\n", line)].rsplit(b" ", 1)[1]
+    skip = sum(int(step.split(b"/")[1]) for step in field.split(b",")[:-1])
+    return data[end + 4 + skip :]
+
+
+def _chain(msg: Update, base: int) -> str:
+    """A delta's bases on the X-SDFR line: ``<base>/<length>,`` per earlier step, then its own
+    (`base`)."""
+    if len(msg.steps) >= MAX_STEPS:
+        raise ValueError(f"a delta carries at most {MAX_STEPS} steps, not {len(msg.steps) + 1}")
+    bases = [b for b, _ in msg.steps] + [base]
+    if any(not 0 <= b < nxt for b, nxt in pairwise(bases)):
+        raise ValueError(f"a delta's steps must go from lower to higher bases: {bases!r}")
+    if any(not body for _, body in msg.steps):
+        raise ValueError("a delta's earlier step has an empty body")
+    return "".join(f"{b}/{len(body)}," for b, body in msg.steps) + str(base)
 
 
 def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
@@ -375,13 +440,15 @@ def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
     kind = _KIND[type(msg)]
     lines: list[str] = []
     body = b""
+    extra = None
     if isinstance(msg, Discovery):
         start = _MSEARCH_LINE
         if msg.multicast or msg.mx:
             raise ValueError("a compact search is a unicast one, with MX 0")
         _check_text("ST", msg.st)
         lines.append(f"ST: {msg.st}")
-        lines += _search_lines(msg)
+        extra = _seq_text(msg.seq)
+        lines += _compact_fetch(msg)
     elif isinstance(msg, Response):
         start = _OK_LINE
         if msg.seq is None or msg.location or msg.max_age:
@@ -389,8 +456,7 @@ def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
         _check_text("ST", msg.st)
         if msg.st != f"uuid:{msg.origin.robot_id}":
             lines.append(f"ST: {msg.st}")
-        _check_range("seq", msg.seq, 0, MAX_SEQ)
-        lines.append(f"X-SDFR-SEQ: {msg.seq}")
+        extra = _seq_text(msg.seq)
         if msg.ping is not None:
             _check_range("ping", msg.ping, 0, MAX_SEQ)
             lines.append(f"X-SDFR-PING: {msg.ping}")
@@ -399,23 +465,20 @@ def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
         if isinstance(msg, Alive | Update) and msg.location:
             _check_location(msg.location)
             lines.append(f"LOCATION: {msg.location}")
-        if isinstance(msg, Alive) and msg.seq is not None:
-            _check_range("seq", msg.seq, 0, MAX_SEQ)
-            lines.append(f"X-SDFR-SEQ: {msg.seq}")
+        if isinstance(msg, Alive):
+            extra = _seq_text(msg.seq)
         if isinstance(msg, Update):
             _check_update_shape(msg.part, msg.parts)
             _check_unique_ids(msg.services)
             if msg.base is not None:
-                body = _delta_body(msg, compact=True)
-                if dictionary is not None:
-                    body = _pack_body(body, dictionary)
-                lines.append(f"X-SDFR-BASE: {msg.base}")
+                extra = _chain(msg, msg.base)
+                body = b"".join(step for _, step in msg.steps) + delta_step(msg, dictionary)
             else:
-                if msg.removed:
-                    raise ValueError("removed ids belong to a delta Update (base is None)")
+                if msg.removed or msg.steps:
+                    raise ValueError("removed ids and steps belong to a delta Update (a base)")
                 body = _body([_service_json(s) for s in msg.services])
                 lines.append(f"X-SDFR-PART: {msg.part + 1}/{msg.parts}")
-    head = _compact_head(msg.origin, kind, start)
+    head = _compact_head(msg.origin, kind, start, extra)
     tail = "".join(f"{line}\r\n" for line in lines) + "\r\n"
     return _finish(head + tail.encode(), body, type(msg).__name__)
 
@@ -577,8 +640,8 @@ def _host(group: str, port: int) -> str:
 
 
 def _search_lines(msg: Discovery) -> list[str]:
-    """A search's SDfR lines beyond its origin, the same in both forms: the ping's sequence
-    number, what a fetch wants, and the set its sender holds."""
+    """A full-form search's SDfR lines beyond its origin: the ping's sequence number, what a
+    fetch wants, and the set its sender holds (the compact form: `_compact_fetch`)."""
     lines = []
     if msg.seq is not None:
         _check_range("seq", msg.seq, 0, MAX_SEQ)

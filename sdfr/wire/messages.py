@@ -126,6 +126,11 @@ class Update:
     #: `removed` are then empty): only a robot holding that set can read it, with
     #: `sdfr.wire.unpack_delta`.  None for every other Update.
     packed: bytes | None = None
+    #: A compact delta's earlier steps, oldest first: (base, body) each, the body as on the
+    #: wire (deflated against that base set, or its JSON), each turning its base into the
+    #: next step's base and the last into `base`.  A robot that missed the changes of the
+    #: last deltas applies them from the set it holds, with `sdfr.wire.read_step`.
+    steps: tuple[tuple[int, bytes], ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,6 +190,8 @@ _BODY_WRAP = len(_BODY_OPEN) + len(_BODY_CLOSE)
 #: A compact Update's body that starts with this byte is raw deflate (RFC 1951) of the JSON
 #: (which always starts with "{"); a delta's against `delta_dictionary` of its base set.
 PACKED = b"Z"
+#: Most steps one compact delta carries (its own and the earlier ones of `Update.steps`).
+MAX_STEPS = 4
 #: Most bytes a packed body may inflate to (a part's JSON is far smaller): no inflate bomb.
 MAX_UNPACKED = 256 * 1024
 #: Deflate's window: the most of a dictionary it can use.

@@ -9,6 +9,7 @@ import statistics
 from sdfr import auth, wire
 from sdfr.auth import Keyring
 from sdfr.model import Service
+from sdfr.protocol.config import REPAIR_MEMORY
 from tests.support.simnet import BEACON, SimNet, kind_of, sent, services
 
 #: The product's ping: one per beacon period, so beacons are the pings.
@@ -230,6 +231,9 @@ def test_a_churning_fleet_stays_within_500ms_and_never_fetches() -> None:
     assert max(lags) <= 0.5 and statistics.median(lags) < 0.1
     for name in names:
         assert sent(net, name, "fetch", since=t0) == []
+        # Nothing lost, nothing to repair: every delta is its own step alone.
+        deltas = [wire.decode(d) for _, d, _ in sent(net, name, "delta", since=t0)]
+        assert deltas and all(isinstance(m, wire.Update) and not m.steps for m in deltas)
 
 
 def test_the_listed_rtt_follows_a_link_that_slows_while_every_round_trip_succeeds() -> None:
@@ -249,3 +253,77 @@ def test_the_listed_rtt_follows_a_link_that_slows_while_every_round_trip_succeed
     assert listed["r2"].rtt_ms is not None and 80 <= listed["r2"].rtt_ms <= 100
     net.run_for(10 * BEACON)  # settled: at most a write or two as it converges on 100 ms
     assert len([v for v in r1.take_dirty() if v.robot_id == "r2"]) <= 1
+
+
+def test_after_a_catch_up_deltas_carry_the_step_before_and_a_miss_costs_no_fetch() -> None:
+    """On a link that loses datagrams: once a peer had to ask for a catch-up, the sender's
+    deltas also carry the step before their own (for REPAIR_MEMORY), so that a robot that
+    missed one delta applies the next without asking; a quiet spell ends it."""
+    net = SimNet(seed=209)
+    names = product_fleet(net, 3, n_services=30)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    current = list(net.nodes["r1"].core.services)
+    version = 1
+
+    def change(*, lost_to_r2: bool = False) -> None:
+        """One change of r1's set, r2 losing its delta when told; right after r1's beacon,
+        so that no beacon tells r2 of it before the next change."""
+        nonlocal version
+        beacons = len(sent(net, "r1", "alive"))
+        net.wait_until(lambda: len(sent(net, "r1", "alive")) > beacons, timeout=2 * BEACON)
+        current.pop(0)
+        current.append(Service(f"r1-x{version}", f"fresh {version}", "bench.kind"))
+        version += 1
+        if lost_to_r2:
+            net.filter = lambda src, dst, data: (
+                not (src == "r1" and dst == "r2" and kind_of(data) == "delta")
+            )
+        net.set_services("r1", version, list(current))
+        net.run_for(0.05)
+        net.filter = None
+
+    def listed(name: str) -> bool:
+        mine = sorted(current, key=lambda s: s.id)
+        return sorted(net.nodes[name].core.peers["r1"].services, key=lambda s: s.id) == mine
+
+    def steps_of(since: float) -> list[int]:
+        out = []
+        for _, data, dst in sent(net, "r1", "delta", since=since):
+            msg = wire.decode(data)
+            assert isinstance(msg, wire.Update) and dst is None
+            out.append(len(msg.steps))
+        return out
+
+    # No loss yet: single-step deltas.
+    t0 = net.now
+    change()
+    net.wait_until(lambda: listed("r2") and listed("r3"), timeout=0.5)
+    assert steps_of(t0) == [0]
+    # r2 misses one: it asks r1 for what changed since the set it holds.
+    t1 = net.now
+    change(lost_to_r2=True)
+    net.wait_until(lambda: listed("r2"), timeout=2 * BEACON)
+    asks = [wire.decode(d) for _, d, _ in sent(net, "r2", "fetch", since=t1)]
+    assert asks and all(isinstance(a, wire.Discovery) and a.have == 2 for a in asks)
+    # From now on each delta carries the step before it: r2 misses one, asks nothing, and
+    # lists the set of the next delta within 500 ms of that change, as r3 does.
+    t2 = net.now
+    change(lost_to_r2=True)
+    net.run_for(0.25)
+    assert not listed("r2") and listed("r3")
+    t3 = net.now
+    net.set_services("r1", version + 1, list(current))  # the same services, a new version
+    version += 1
+    for name in ("r2", "r3"):
+        peer = net.nodes[name].core.peers["r1"]
+        net.wait_until(lambda p=peer: p.held is not None and p.held[1] == version, 0.5)
+        assert listed(name)
+    assert sent(net, "r2", "fetch", since=t2) == []
+    assert steps_of(t2) == [1, 1]
+    # The step costs bytes on every delta: it goes once nobody asked for a while.
+    net.run_for(REPAIR_MEMORY)
+    t4 = net.now
+    change()
+    net.wait_until(lambda: listed("r2") and listed("r3"), timeout=0.5)
+    assert steps_of(t3) == [1, 0] and steps_of(t4) == [0]

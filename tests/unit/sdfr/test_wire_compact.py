@@ -29,6 +29,8 @@ from sdfr.wire import (
     delta_dictionary,
     encode,
     encode_update_parts,
+    last_step,
+    read_step,
     unpack_delta,
 )
 from tests.support.wire_data import (
@@ -197,6 +199,7 @@ def test_a_full_search_carries_what_the_fetcher_holds() -> None:
     msg = Discovery(NEW, "uuid:robot-8", 0, want=WANT_ALL, want_version=9, multicast=False, have=7)
     data = encode(msg, group="10.1.0.8", port=1900)
     assert b"X-SDFR-HAVE: 7\r\n" in data and decode(data) == msg
+    assert b"X-SDFR-WANT: all\r\nX-SDFR-WANT-VERSION: 9\r\n" in data
 
 
 def test_what_has_no_compact_form() -> None:
@@ -215,11 +218,14 @@ def test_compact_rejects() -> None:
     assert isinstance(decode(good), Alive)
     other = decode(good, fleet=4)
     assert isinstance(other, Reject) and other.reason == "other-fleet"
-    line = b"X-SDFR: alive 3 robot-7 1700000000 42 " + b"0" * 16
+    line = b"X-SDFR: alive 3 robot-7 1700000000 42 " + b"0" * 16 + b" 5"
     assert line in good
     for bad, reason in (
         (b"X-SDFR: alive 3 robot-7 1700000000 42", "bad-value"),  # a field short
-        (b"X-SDFR: update 3 robot-7 1700000000 42 " + b"0" * 16, "bad-value"),  # no PART/BASE
+        (line + b" 6", "bad-value"),  # a field too many
+        (line.replace(b" 5", b" x"), "bad-value"),  # a seq that is no number
+        (b"X-SDFR: update 3 robot-7 1700000000 42 " + b"0" * 16, "bad-value"),  # no PART/base
+        (b"X-SDFR: byebye 3 robot-7 1700000000 42 " + b"0" * 16 + b" 5", "bad-value"),
         (b"X-SDFR: response 3 robot-7 1700000000 42 " + b"0" * 16, "bad-value"),  # on a NOTIFY
         (b"X-SDFR: alive 3 robot 7 1700000000 42 " + b"0" * 16, "bad-value"),
         (b"X-SDFR: alive 3 robot-7 1700000000 42 " + b"G" * 16, "bad-value"),
@@ -227,7 +233,110 @@ def test_compact_rejects() -> None:
     ):
         check_reject(decode(good.replace(line, bad)), reason)
     reply = encode(Response(NEW, "uuid:robot-7", "", 0, seq=5), compact=True)
-    check_reject(decode(reply.replace(b"X-SDFR-SEQ: 5\r\n", b"")), "missing-header", "SEQ")
+    check_reject(decode(reply.replace(b" 5\r\n", b"\r\n", 1)), "bad-value", "seq")
     svc = Service("a", "a", "t")
     delta = encode(Update(NEW, "", 0, 0, 1, (svc,), 41, ()), compact=True)
-    check_reject(decode(delta.replace(b"X-SDFR-BASE: 41", b"X-SDFR-BASE: 42")), "bad-value")
+    check_reject(decode(delta.replace(b" 41\r\n", b" 42\r\n")), "bad-value", "bases")
+    part = encode(Update(NEW, "", 0, 0, 1, (svc,)), compact=True)
+    with_base = part.replace(b"0" * 16 + b"\r\n", b"0" * 16 + b" 41\r\n")
+    check_reject(decode(with_base), "bad-value", "X-SDFR-PART or a base")
+
+
+def test_a_compact_fetch_says_what_it_wants_in_one_line() -> None:
+    msg = Discovery(NEW, "uuid:robot-8", 0, want=WANT_ALL, want_version=9, multicast=False, have=7)
+    data = encode(msg, compact=True)
+    assert b"X-SDFR-WANT: all 9 7\r\n" in data and b"HAVE" not in data
+    assert decode(data) == msg
+    full = encode(msg, group="10.1.0.8", port=1900)
+    assert len(full) - len(data) > 200
+    ping = Discovery(NEW, "uuid:robot-8", 0, seq=12, multicast=False)
+    assert b"X-SDFR-WANT" not in encode(ping, compact=True)
+    some = dataclasses.replace(msg, want=(0, 3), want_version=None, have=None)
+    assert b"X-SDFR-WANT: 0,3\r\n" in encode(some, compact=True)
+    held = dataclasses.replace(msg, want=None, want_version=None)
+    assert b"X-SDFR-WANT: - - 7\r\n" in encode(held, compact=True)
+    line = b"X-SDFR-WANT: all 9 7"
+    for bad in (b"X-SDFR-WANT: all 9 7 1", b"X-SDFR-WANT: all 9 -", b"X-SDFR-WANT: all x 7",
+                b"X-SDFR-WANT: none", b"X-SDFR-WANT: "):  # fmt: skip
+        check_reject(decode(data.replace(line, bad)), "bad-value", "X-SDFR-WANT")
+
+
+def _chain_sets(n: int) -> list[tuple[Service, ...]]:
+    """`n` versions of a set, each with one service gone and a fresh one added."""
+    base = realistic_services(30)
+    sets = [tuple(base)]
+    for v in range(1, n):
+        prev = list(sets[-1])
+        prev.pop(v)
+        prev.append(dataclasses.replace(base[0], id=f"fresh-{v}", name=f"fresh {v}"))
+        sets.append(tuple(prev))
+    return sets
+
+
+def _step(sets: list[tuple[Service, ...]], i: int) -> Update:
+    """The delta from version 10 + i (`sets[i]`) to 11 + i, unpacked."""
+    old = {s.id: s for s in sets[i]}
+    new = sets[i + 1]
+    added = tuple(s for s in new if old.get(s.id) != s)
+    removed = tuple(sid for sid in old if sid not in {s.id for s in new})
+    origin = dataclasses.replace(NEW, version=11 + i)
+    return Update(origin, "", 0, 0, 1, added, 10 + i, removed)
+
+
+def _apply(have: tuple[Service, ...], read: object) -> tuple[Service, ...]:
+    assert isinstance(read, tuple), read
+    changed = {s.id: s for s in read[0]}
+    kept = tuple(changed.pop(s.id, s) for s in have if s.id not in read[1])
+    return kept + tuple(changed.values())
+
+
+def test_a_delta_carries_the_steps_before_it_and_each_reads_from_its_own_base() -> None:
+    sets = _chain_sets(4)
+    steps = []
+    for i in range(2):
+        data = encode(_step(sets, i), compact=True, dictionary=delta_dictionary(sets[i]))
+        steps.append((10 + i, last_step(data)))
+        assert data.endswith(steps[-1][1]) and steps[-1][1].startswith(PACKED)
+    own = dataclasses.replace(_step(sets, 2), steps=tuple(steps))
+    data = encode(own, compact=True, dictionary=delta_dictionary(sets[2]))
+    n0, n1 = len(steps[0][1]), len(steps[1][1])
+    assert f" 10/{n0},11/{n1},12\r\n".encode() in data
+    got = decode(data)
+    assert isinstance(got, Update) and got.steps == tuple(steps) and got.base == 12
+    assert data.endswith(last_step(data)) and len(last_step(data)) < len(data) - n0 - n1
+    # From the oldest base, step by step, to the newest set.
+    have = sets[0]
+    for base, body in got.steps:
+        have = _apply(have, read_step(body, have))
+        assert have == sets[base - 9]
+    final = unpack_delta(got, have)
+    assert isinstance(final, Update)
+    assert _apply(have, (final.services, final.removed)) == sets[3]
+    # A step read against a set that is not its base: a reject, or garbage the digest catches.
+    wrong = read_step(steps[1][1], sets[0])
+    assert isinstance(wrong, Reject) or wrong != read_step(steps[1][1], sets[1])
+
+
+def test_a_delta_chain_that_does_not_add_up_is_refused() -> None:
+    sets = _chain_sets(3)
+    first = encode(_step(sets, 0), compact=True, dictionary=delta_dictionary(sets[0]))
+    body = last_step(first)
+    own = dataclasses.replace(_step(sets, 1), steps=((10, body),))
+    data = encode(own, compact=True, dictionary=delta_dictionary(sets[1]))
+    n = len(body)
+    field = f" 10/{n},11\r\n"
+    assert field.encode() in data
+    for bad, detail in (
+        (f" 10/{len(data)},11\r\n", "length"),  # longer than the body
+        (" 10/0,11\r\n", "length"),
+        (f" 11/{n},11\r\n", "bases"),  # not rising
+        (f" 10/{n},12\r\n", "bases"),  # the last base is not below the version
+        (" 10,11\r\n", "<base>/<length>"),
+        (f" 6/1,7/1,8/1,10/{n},11\r\n", "steps"),  # more than MAX_STEPS
+    ):
+        check_reject(decode(data.replace(field.encode(), bad.encode())), "bad-value", detail)
+    for wrong in (((11, body),), ((10, b""),), tuple((i, body) for i in range(4, 8))):
+        with pytest.raises(ValueError):
+            encode(dataclasses.replace(own, steps=wrong), compact=True)
+    with pytest.raises(ValueError, match="compact"):
+        encode(dataclasses.replace(own, location=LOCATION, max_age=30))
