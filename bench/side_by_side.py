@@ -27,11 +27,16 @@ The steps, timed for both systems from the moment they were asked:
 6. a 40 s partition of the robots left into two halves, during which r1 publishes a service
    and a robot of the other half unpublishes one: whether and when each half stopped listing
    the other, and after the merge until every list is right again.
+
+`make bench-paper` runs it after the paper's runs; `python -m bench.side_by_side` runs it alone.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import dataclasses
+import json
 import os
 import signal
 import subprocess
@@ -39,6 +44,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -545,3 +551,45 @@ def table(r: dict[str, Any]) -> list[dict[str, Any]]:
         "publishes, from the moment each was asked for",
     )
     return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument(
+        "--quick", action="store_true", help=f"{QUICK.robots} robots, {QUICK.churn:g} s of churn"
+    )
+    p.add_argument(
+        "--smoke",
+        action="store_true",
+        help="CI's timing: every step for seconds, at a 1 s beacon (numbers mean nothing)",
+    )
+    p.add_argument("--robots", type=int, help="robots (default: the timing's)")
+    p.add_argument("--churn", type=float, help="seconds of churn (default: the timing's)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where the run folder goes")
+    p.add_argument("--out", type=Path, help="also write the result JSON here")
+    args = p.parse_args(argv)
+    if os.geteuid() != 0:
+        err("side-by-side: needs root (it runs robots in network namespaces)")
+        return 2
+    timing = SMOKE if args.smoke else QUICK if args.quick else FULL
+    if args.robots is not None:
+        timing = dataclasses.replace(timing, robots=args.robots)
+    if args.churn is not None:
+        timing = dataclasses.replace(timing, churn=args.churn)
+    folder = Path(args.runs).absolute() / f"side-by-side-{datetime.now():%Y%m%d-%H%M%S}"
+    result = run(folder, timing, seed=args.seed)
+    text = json.dumps(result, indent=2) + "\n"
+    (folder / "side-by-side.json").write_text(text)
+    if args.out:
+        args.out.write_text(text)
+    for row in result["table"]:
+        sdfr, zc = _fmt(row["sdfr"], ""), _fmt(row["zeroconf"], "")
+        note = f" ({row['note']})" if row["note"] else ""
+        print(f"{row['measure']}: SDfR {sdfr}, python-zeroconf {zc}{note}")
+    err(f"side-by-side: {folder}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
