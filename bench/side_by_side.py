@@ -17,18 +17,26 @@ The steps, timed for both systems from the moment they were asked:
 2. churn (5 minutes; `--quick`: 30 s): bytes per robot on the air, CPU and PSS per robot,
    and how long each change took to be listed elsewhere;
 3. a new service on r1: until every other robot lists it;
-4. a graceful leave (SIGTERM) of the last robot: until no robot lists its services;
+4. a graceful leave (SIGTERM) of the last robot: until no robot lists the services it had
+   when it left (a service it had unpublished earlier that a robot still lists, which
+   python-zeroconf can do for the records' TTL when a goodbye overtakes an answer sent just
+   before it, is counted apart: `stale_after_leave`);
 5. a silent death (SIGKILL) of the one before: until no robot lists its services, waiting at
    most `KILL_CAP` s (python-zeroconf keeps an unannounced service until its PTR record
    expires, 75 minutes by default);
 6. a 40 s partition of the robots left into two halves, during which r1 publishes a service
    and a robot of the other half unpublishes one: whether and when each half stopped listing
    the other, and after the merge until every list is right again.
+
+`make bench-paper` runs it after the paper's runs; `python -m bench.side_by_side` runs it alone.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import dataclasses
+import json
 import os
 import signal
 import subprocess
@@ -36,6 +44,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -241,6 +250,19 @@ def everyone_lists_one(
     return holds
 
 
+def nobody_lists_these(
+    watchers: Sequence[str], robot: str, sids: set[str]
+) -> Callable[[Listed], bool]:
+    """No watcher lists any of these services of `robot`."""
+
+    def holds(listed: Listed) -> bool:
+        return all(
+            not (r == robot and s in sids) for w in watchers for r, s in listed.get(w, set())
+        )
+
+    return holds
+
+
 def nobody_lists(watchers: Sequence[str], robots: Sequence[str]) -> Callable[[Listed], bool]:
     def holds(listed: Listed) -> bool:
         return all(r not in robots for w in watchers for r, _ in listed.get(w, set()))
@@ -344,17 +366,28 @@ def steps(lab: Lab, fleet: Fleet, names: list[str], timing: Timing) -> dict[str,
         )
         for system in SYSTEMS
     }
-    # 4. a graceful leave of the last robot.
+    # 4. a graceful leave of the last robot: its services at the leave; apart, what the others
+    # still list of those it had unpublished before.
     leaver, victim = names[-1], names[-2]
     left = names[:-1]
     t = time.time()
     lab.stop(leaver)
     os.kill(fleet.zc[leaver].pid, signal.SIGTERM)
     time.sleep(look)
-    out["graceful_leave_s"] = {
-        system: first_time(fleet.events(system), t, t + look, nobody_lists(left, [leaver]))
-        for system in SYSTEMS
-    }
+    out["graceful_leave_s"], out["stale_after_leave"] = {}, {}
+    for system in SYSTEMS:
+        ev = fleet.events(system)
+        had = own_services(ev, leaver, t)
+        out["graceful_leave_s"][system] = first_time(
+            ev, t, t + look, nobody_lists_these(left, leaver, had)
+        )
+        listed = replay(ev, t + look)
+        out["stale_after_leave"][system] = sorted(
+            [w, sid]
+            for w in left
+            for r, sid in listed.get(w, set())
+            if r == leaver and sid not in had
+        )
     # 5. a silent death, waited for at most kill_cap.
     alive = names[:-2]
     t = time.time()
@@ -458,7 +491,13 @@ def table(r: dict[str, Any]) -> list[dict[str, Any]]:
 
     row("start-up: all robots list all services (s)", *both("startup_s"))
     row("a new service seen on all peers (s)", *both("new_service_s"))
-    row("a graceful leave seen on all peers (s)", *both("graceful_leave_s"))
+    stale = {s: len(v) for s, v in r.get("stale_after_leave", {}).items()}
+    row(
+        "a graceful leave seen on all peers (s)",
+        *both("graceful_leave_s"),
+        "its services at the leave; still listed after it, of those it had unpublished "
+        f"before: SDfR {stale.get('sdfr', '?')}, python-zeroconf {stale.get('zeroconf', '?')}",
+    )
     row(
         f"a kill -9 seen on all peers (s, waited at most {r['kill_cap_s']:g} s)",
         *both("kill_9_s"),
@@ -512,3 +551,45 @@ def table(r: dict[str, Any]) -> list[dict[str, Any]]:
         "publishes, from the moment each was asked for",
     )
     return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument(
+        "--quick", action="store_true", help=f"{QUICK.robots} robots, {QUICK.churn:g} s of churn"
+    )
+    p.add_argument(
+        "--smoke",
+        action="store_true",
+        help="CI's timing: every step for seconds, at a 1 s beacon (numbers mean nothing)",
+    )
+    p.add_argument("--robots", type=int, help="robots (default: the timing's)")
+    p.add_argument("--churn", type=float, help="seconds of churn (default: the timing's)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where the run folder goes")
+    p.add_argument("--out", type=Path, help="also write the result JSON here")
+    args = p.parse_args(argv)
+    if os.geteuid() != 0:
+        err("side-by-side: needs root (it runs robots in network namespaces)")
+        return 2
+    timing = SMOKE if args.smoke else QUICK if args.quick else FULL
+    if args.robots is not None:
+        timing = dataclasses.replace(timing, robots=args.robots)
+    if args.churn is not None:
+        timing = dataclasses.replace(timing, churn=args.churn)
+    folder = Path(args.runs).absolute() / f"side-by-side-{datetime.now():%Y%m%d-%H%M%S}"
+    result = run(folder, timing, seed=args.seed)
+    text = json.dumps(result, indent=2) + "\n"
+    (folder / "side-by-side.json").write_text(text)
+    if args.out:
+        args.out.write_text(text)
+    for row in result["table"]:
+        sdfr, zc = _fmt(row["sdfr"], ""), _fmt(row["zeroconf"], "")
+        note = f" ({row['note']})" if row["note"] else ""
+        print(f"{row['measure']}: SDfR {sdfr}, python-zeroconf {zc}{note}")
+    err(f"side-by-side: {folder}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

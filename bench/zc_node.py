@@ -3,7 +3,10 @@
 Run inside a robot's namespace.  It registers the robot's services (one DNS-SD instance
 each, type ``_sdfrbench._tcp.local.``, its attributes in TXT) and browses that type: a
 service of another robot is *listed* once it is resolved (SRV and TXT known, as SDfR lists
-a service with its attributes).  From `--churn-at` to `--churn-until` the services churn
+a service with its attributes).  A resolution that timed out is tried again, as a careful user
+of python-zeroconf would, for as long as the browser says the service is there: after 1 s, then
+twice as long each time up to 30 s, and at once when the browser reports an update of the
+service (records of it arrived since).  From `--churn-at` to `--churn-until` the services churn
 exactly as `bench.paper_load` reads the paper (publish 10 s after an unpublish, one unpublish
 every 0-5 s, fresh names), so both systems carry the same load.
 
@@ -17,10 +20,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import random
 import signal
 import socket
+import sys
 import time
 from typing import IO, Any
 
@@ -29,6 +34,9 @@ from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZerocon
 
 TYPE = "_sdfrbench._tcp.local."
 RESOLVE_TIMEOUT_MS = 3000
+#: After a resolution timed out: the first wait before the next one, and the longest.
+RETRY_FIRST_S = 1.0
+RETRY_MAX_S = 30.0
 
 
 def instance(robot: str, sid: str) -> str:
@@ -57,6 +65,11 @@ class Node:
         #: What the browser says is there now (a resolution must not bring back what it
         #: has since said is gone).
         self.present: set[tuple[str, str]] = set()
+        #: The services being resolved, each with what wakes its resolver up early (the
+        #: browser reported a change of the service, or its removal).
+        self.resolving: dict[tuple[str, str], asyncio.Event] = {}
+        #: The resolvers' jitter (apart from `rng`, so that the churn stays the same).
+        self.jitter = random.Random(f"zc-retry:{args.seed}:{self.robot}")
         self.tasks: set[asyncio.Task[Any]] = set()
         self.extra = 0
         self.done = asyncio.Event()
@@ -110,21 +123,54 @@ class Node:
         who = owner(name)
         if who is None or who[0] == self.robot:
             return
+        poke = self.resolving.get(who)
         if state_change is ServiceStateChange.Removed:
             self.present.discard(who)
             if who in self.listed:
                 self.listed.discard(who)
                 self.log(op="gone", at=self.robot, robot=who[0], sid=who[1])
-        elif state_change is ServiceStateChange.Added:
+            if poke is not None:
+                poke.set()  # its resolver stops
+            return
+        if state_change is ServiceStateChange.Added:
             self.present.add(who)
+        if who in self.listed or who not in self.present:
+            return
+        # Added, or Updated while not resolved yet: resolve it (now, if already trying).
+        if poke is not None:
+            poke.set()
+        else:
+            self.resolving[who] = asyncio.Event()
             self.spawn(self.resolve(name, who))
 
     async def resolve(self, name: str, who: tuple[str, str]) -> None:
-        info = AsyncServiceInfo(TYPE, name)
-        ok = await info.async_request(self.aiozc.zeroconf, RESOLVE_TIMEOUT_MS)
-        if ok and info.properties and who in self.present and who not in self.listed:
-            self.listed.add(who)
-            self.log(op="seen", at=self.robot, robot=who[0], sid=who[1])
+        """Resolve `name` until it is resolved or the browser says it is gone."""
+        poke = self.resolving[who]
+        wait = RETRY_FIRST_S
+        tries = 0
+        try:
+            while who in self.present and who not in self.listed:
+                poke.clear()
+                tries += 1
+                info = AsyncServiceInfo(TYPE, name)
+                ok = await info.async_request(self.aiozc.zeroconf, RESOLVE_TIMEOUT_MS)
+                if ok and info.properties:
+                    if who in self.present and who not in self.listed:
+                        self.listed.add(who)
+                        self.log(op="seen", at=self.robot, robot=who[0], sid=who[1])
+                    return
+                pause = wait * self.jitter.uniform(0.8, 1.2)
+                print(
+                    f"{time.time():.3f} {self.robot}: resolving {name} timed out "
+                    f"(try {tries}); again in {pause:.1f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(poke.wait(), pause)
+                wait = min(2 * wait, RETRY_MAX_S)
+        finally:
+            del self.resolving[who]
 
     async def churn(self) -> None:
         """Unpublish a published service every 0-5 s; its publisher publishes again 10 s

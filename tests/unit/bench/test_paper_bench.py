@@ -13,7 +13,15 @@ import pytest
 
 from bench.paper_load import Board
 from bench.paper_measure import Reading, mdns_messages, propagation, udp_traffic, usage
-from bench.side_by_side import everyone_lists, first_time, halves_apart, nobody_lists, own_services
+from bench.side_by_side import (
+    everyone_lists,
+    first_time,
+    halves_apart,
+    nobody_lists,
+    nobody_lists_these,
+    own_services,
+    replay,
+)
 from bench.zc_node import TYPE, instance, owner
 
 MINE = "02:00:00:00:00:01"
@@ -117,6 +125,26 @@ def test_first_time_replays_the_watchers_notes() -> None:
     exact = everyone_lists(["r2", "r3"], {"r1": {"a"}, "r2": set(), "r3": set()}, exact=True)
     assert first_time(ev, 0.0, 9.0, exact) == 1.5
     assert first_time(ev, 0.0, 9.0, halves_apart(["r1"], ["r2", "r3"])) == 0.0
+
+
+def test_a_leave_is_timed_on_the_services_the_robot_had_and_an_older_ghost_is_apart() -> None:
+    # r1 unpublished "old" at 2, but r2 listed it again (python-zeroconf: a goodbye overtook
+    # an answer sent just before it); r1 leaves at 4 with "a".
+    ev: list[dict[str, Any]] = [
+        {"t": 1.0, "op": "publish", "robot": "r1", "sid": "a"},
+        {"t": 1.0, "op": "publish", "robot": "r1", "sid": "old"},
+        {"t": 1.2, "op": "seen", "at": "r2", "robot": "r1", "sid": "a"},
+        {"t": 1.2, "op": "seen", "at": "r2", "robot": "r1", "sid": "old"},
+        {"t": 2.0, "op": "unpublish", "robot": "r1", "sid": "old"},
+        {"t": 2.1, "op": "gone", "at": "r2", "robot": "r1", "sid": "old"},
+        {"t": 2.1, "op": "seen", "at": "r2", "robot": "r1", "sid": "old"},
+        {"t": 4.3, "op": "gone", "at": "r2", "robot": "r1", "sid": "a"},
+    ]
+    had = own_services(ev, "r1", 4.0)
+    assert had == {"a"}
+    assert first_time(ev, 4.0, 9.0, nobody_lists_these(["r2"], "r1", had)) == 0.3
+    assert first_time(ev, 4.0, 9.0, nobody_lists(["r2"], ["r1"])) is None
+    assert replay(ev, 9.0) == {"r2": {("r1", "old")}}
 
 
 def test_the_unpublish_scheduler_picks_a_published_service_once() -> None:
