@@ -43,6 +43,7 @@ trust, the entry points).
 from __future__ import annotations
 
 from sdfr.protocol.config import (
+    BEACON_ANSWERS,
     BEACON_INTERVAL,
     CHALLENGE_BURST,
     CHALLENGE_RATE,
@@ -64,6 +65,7 @@ from sdfr.protocol.config import (
     Addr,
     CoreConfig,
     Outgoing,
+    answers_beacon,
 )
 from sdfr.protocol.core import (
     Core,
@@ -75,6 +77,7 @@ from sdfr.protocol.peers import (
 )
 
 __all__ = [
+    "BEACON_ANSWERS",
     "BEACON_INTERVAL",
     "CHALLENGE_BURST",
     "CHALLENGE_RATE",
@@ -100,4 +103,5 @@ __all__ = [
     "Counters",
     "Outgoing",
     "Peer",
+    "answers_beacon",
 ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass
 
 from sdfr import wire
@@ -51,6 +52,8 @@ MISS_LIMIT = 3
 PING_WINDOW = 20
 REPLY_DELAY_MAX = 0.5
 UPDATE_GAP = 0.25
+#: Most peers one beacon asks for a ping reply (`CoreConfig.beacon_answers`).
+BEACON_ANSWERS = 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +77,11 @@ class CoreConfig:
     #: Robot-to-robot datagrams in the compact form (`sdfr.wire.encode`) to peers that read
     #: it, and the beacon as everyone's ping; False: only the full forms, as wire version 1.
     wire_compact: bool = True
+    #: A beacon that pings asks at most about this many peers to answer: in a larger fleet
+    #: the peers take turns (`answers_beacon`), so that what a robot sends and receives for
+    #: the indicator does not grow with the fleet (each pair is then measured every
+    #: ceil(peers / beacon_answers) beacons).
+    beacon_answers: int = BEACON_ANSWERS
     #: Announced sets kept, so that a robot that missed a change or a few is sent what changed
     #: since the set it holds rather than the whole set.
     delta_history: int = 32
@@ -100,3 +108,9 @@ class CoreConfig:
     def proven_for(self) -> float:
         """How long an answered ping vouches for its address."""
         return max(2 * self.ping_interval, self.dead_after)
+
+
+def answers_beacon(robot_id: str, seq: int, turns: int) -> bool:
+    """Whether the robot `robot_id` answers a beacon of sequence number `seq` whose peers
+    take `turns` turns (`sdfr.wire.Alive.turns`): its turn is a hash of its id."""
+    return turns <= 1 or zlib.crc32(robot_id.encode()) % turns == seq % turns

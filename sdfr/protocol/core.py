@@ -19,6 +19,7 @@ from sdfr.protocol.config import (
     UNPROVEN_PARTS_MIN,
     Addr,
     Outgoing,
+    answers_beacon,
 )
 from sdfr.protocol.peers import Conflict, Peer, _Fetch, _Ping
 from sdfr.protocol.state import CoreState
@@ -168,8 +169,13 @@ class Core(CoreState):
             self._on_update(peer, msg, now)
         elif isinstance(msg, Response):
             self._on_response(peer, msg, src, now)
-        elif isinstance(msg, Alive) and msg.seq is not None:
-            # A beacon that is a ping to all who hear it: answer it (the compact ping reply).
+        elif (
+            isinstance(msg, Alive)
+            and msg.seq is not None
+            and answers_beacon(self.config.robot_id, msg.seq, msg.turns)
+        ):
+            # A beacon that is a ping to all who hear it (or to those whose turn it is):
+            # answer it (the compact ping reply).
             self._send(Response(self._origin(), self._me(), "", 0, msg.seq), src)
         if peer.robot_id in self.peers:
             self._want_current(peer, now, soon=soon)

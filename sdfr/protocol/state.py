@@ -29,6 +29,7 @@ from sdfr.protocol.config import (
     Addr,
     CoreConfig,
     Outgoing,
+    answers_beacon,
 )
 from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _GroupPing, _Ping
 from sdfr.wire import WANT_ALL, WIRE_COMPACT, WIRE_FULL, Alive, Discovery, Origin, Update
@@ -82,6 +83,8 @@ class CoreState:
         self._last_set_multicast = -math.inf
         self._pings: dict[int, _Ping] = {}
         self._ping_seq = rng.randrange(1 << 30)
+        #: Which turn of peers our last beacon asked to answer (`answers_beacon`).
+        self._beacon_turn = 0
         self._sent_seals = 0
         self._sources = KeyedBuckets(SOURCE_RATE, SOURCE_BURST, MAX_SOURCES)
         self._fetch_budget = KeyedBuckets(1.0, 1.0, MAX_SOURCES)
@@ -308,20 +311,37 @@ class CoreState:
         )
 
     def _beacon(self, now: float) -> None:
-        """The beacon; with beacon pings, a ping to every peer that answers them too."""
+        """The beacon; with beacon pings, a ping to every peer that answers them too (or, in
+        a fleet of more than `beacon_answers` such peers, to those whose turn it is)."""
         cfg = self.config
-        seq = None
+        compact = self._compact_for(None)
+        seq, turns = None, 1
         if self._beacon_pings():
-            targets = {
+            pinged = {
                 p.robot_id: p.address
                 for p in self.peers.values()
                 if p.reachable and self._by_beacon(p)
             }
+            if compact and len(pinged) > cfg.beacon_answers:
+                turns = min(wire.MAX_TURNS, -(-len(pinged) // max(1, cfg.beacon_answers)))
+            seq = self._next_seq()
+            targets = pinged
+            for _ in range(turns if turns > 1 else 0):
+                # The next turn in order that has peers in it, as the seq says.
+                self._beacon_turn = (self._beacon_turn + 1) % turns
+                seq = (seq + (self._beacon_turn - seq) % turns) & 0x7FFFFFFF
+                targets = {
+                    rid: addr for rid, addr in pinged.items() if answers_beacon(rid, seq, turns)
+                }
+                if targets:
+                    break
+            self._ping_seq = seq
             if targets:
-                seq = self._next_seq()
                 self._group_pings[seq] = _GroupPing(now, targets)
-        if self._compact_for(None):  # peers know where we are: no LOCATION, no max-age
-            self._send(Alive(self._origin(), "", 0, seq), None, compact=True)
+            else:
+                seq, turns = None, 1
+        if compact:  # peers know where we are: no LOCATION, no max-age
+            self._send(Alive(self._origin(), "", 0, seq, turns), None, compact=True)
         else:
             self._send(Alive(self._origin(), self.location, cfg.max_age, seq), None, compact=False)
 

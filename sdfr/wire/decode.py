@@ -24,6 +24,7 @@ from sdfr.wire.messages import (
     MAX_PARTS,
     MAX_SEQ,
     MAX_STEPS,
+    MAX_TURNS,
     MAX_UNPACKED,
     MAX_VERSION,
     PACKED,
@@ -215,6 +216,10 @@ def _decode_compact(
         return _decode_compact_delta(origin, headers, body, extra)
     if kind in ("update", "byebye") and extra is not None:
         raise _Rejected("bad-value", f"X-SDFR {kind} with a seventh field")
+    turns = 1
+    if kind == "alive" and extra is not None and "/" in extra:
+        extra, _, turns_text = extra.partition("/")
+        turns = _int_value("X-SDFR turns", turns_text, 2, MAX_TURNS)
     seq = None if extra is None else _int_value("X-SDFR seq", extra, 0, MAX_SEQ)
     if kind == "discovery":
         st = _need(headers, "ST")
@@ -231,7 +236,7 @@ def _decode_compact(
         return Byebye(origin)
     location = _compact_location(headers)
     if kind == "alive":
-        return Alive(origin, location, 0, seq)
+        return Alive(origin, location, 0, seq, turns)
     part_text = headers.get("X-SDFR-PART")
     if part_text is None:
         raise _Rejected("bad-value", "a compact update has X-SDFR-PART or a base, one")

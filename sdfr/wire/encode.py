@@ -31,6 +31,7 @@ from sdfr.wire.messages import (
     MAX_PARTS,
     MAX_SEQ,
     MAX_STEPS,
+    MAX_TURNS,
     MAX_VERSION,
     PACKED,
     SERVER,
@@ -66,15 +67,16 @@ def encode(
 
     `compact`: the form only SDfR robots of wire version 2 read (`decode` reads both).  The
     origin's seven header lines become one (``X-SDFR: <type> <fleet> <robot> <boot> <version>
-    <digest> [<field>]``, the field a ping's or beacon's sequence number, a ping reply's, or a
-    delta's base; a fetch's three lines become ``X-SDFR-WANT: <parts> <version> [<have>]``)
-    and the lines only a UPnP control point needs go (HOST, MAN, NT, NTS, USN,
-    SERVER, CACHE-CONTROL, CONFIGID, CONTENT-TYPE, CONTENT-LENGTH; LOCATION unless given): a
-    beacon takes about 75 bytes instead of 430.  Searches only by unicast (pings, fetches),
-    responses only as ping replies; plain SSDP clients always get the full form.  A compact
-    delta's body is deflated against `dictionary` (`delta_dictionary` of its base set) when
-    given and that is shorter; a delta may carry earlier steps (`Update.steps`: its base
-    field is then ``<base>/<length>,...,<base>`` and its body their bodies, then its own).
+    <digest> [<field>]``, the field a ping's or beacon's sequence number (a beacon's with
+    ``/<turns>``), a ping reply's, or a delta's base; a fetch's three lines become
+    ``X-SDFR-WANT: <parts> <version> [<have>]``) and the lines only a UPnP control point
+    needs go (HOST, MAN, NT, NTS, USN, SERVER, CACHE-CONTROL, CONFIGID, CONTENT-TYPE,
+    CONTENT-LENGTH; LOCATION unless given): a beacon takes about 75 bytes instead of 430.
+    Searches only by unicast (pings, fetches), responses only as ping replies; plain SSDP
+    clients always get the full form.  A compact delta's body is deflated against
+    `dictionary` (`delta_dictionary` of its base set) when given and that is shorter; a
+    delta may carry earlier steps (`Update.steps`: its base field is then
+    ``<base>/<length>,...,<base>`` and its body their bodies, then its own).
     """
     if compact:
         return _compact(msg, dictionary)
@@ -99,6 +101,8 @@ def encode(
     elif isinstance(msg, Response):
         lines = _response_lines(msg)
     elif isinstance(msg, Alive):
+        if msg.turns != 1:
+            raise ValueError("a beacon's turns go only in the compact form")
         _check_location(msg.location)
         _check_max_age(msg.max_age)
         lines = _notify_lines(msg.origin, "alive", _host(group, port))
@@ -467,6 +471,11 @@ def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
             lines.append(f"LOCATION: {msg.location}")
         if isinstance(msg, Alive):
             extra = _seq_text(msg.seq)
+            if msg.turns != 1:
+                _check_range("turns", msg.turns, 2, MAX_TURNS)
+                if extra is None:
+                    raise ValueError("a beacon's turns go with its seq")
+                extra += f"/{msg.turns}"
         if isinstance(msg, Update):
             _check_update_shape(msg.part, msg.parts)
             _check_unique_ids(msg.services)

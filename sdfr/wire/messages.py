@@ -138,13 +138,16 @@ class Alive:
     """`NOTIFY` with `NTS: ssdp:alive`: the beacon, no body.
 
     With `seq` it is also a ping to every robot that hears it (X-SDFR-SEQ), each answering
-    with a ping reply of that sequence number.  A compact Alive may leave `location` empty
+    with a ping reply of that sequence number; with `turns` above 1 (compact only), to those
+    whose turn it is (`sdfr.protocol.answers_beacon`), so that a robot answers a bounded
+    number of beacons however large the fleet.  A compact Alive may leave `location` empty
     (the robot's address did not change) and has no max-age (0)."""
 
     origin: Origin
     location: str
     max_age: int
     seq: int | None = None
+    turns: int = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -190,6 +193,8 @@ _BODY_WRAP = len(_BODY_OPEN) + len(_BODY_CLOSE)
 #: A compact Update's body that starts with this byte is raw deflate (RFC 1951) of the JSON
 #: (which always starts with "{"); a delta's against `delta_dictionary` of its base set.
 PACKED = b"Z"
+#: Most turns a beacon's pinged robots may take (`Alive.turns`).
+MAX_TURNS = 1024
 #: Most steps one compact delta carries (its own and the earlier ones of `Update.steps`).
 MAX_STEPS = 4
 #: Most bytes a packed body may inflate to (a part's JSON is far smaller): no inflate bomb.

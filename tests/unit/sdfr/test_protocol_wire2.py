@@ -4,12 +4,13 @@ fleet that mixes in a robot of wire version 1."""
 
 from __future__ import annotations
 
+import itertools
 import statistics
 
 from sdfr import auth, wire
 from sdfr.auth import Keyring
 from sdfr.model import Service
-from sdfr.protocol.config import REPAIR_MEMORY
+from sdfr.protocol.config import REPAIR_MEMORY, answers_beacon
 from tests.support.simnet import BEACON, SimNet, kind_of, sent, services
 
 #: The product's ping: one per beacon period, so beacons are the pings.
@@ -327,3 +328,58 @@ def test_after_a_catch_up_deltas_carry_the_step_before_and_a_miss_costs_no_fetch
     change()
     net.wait_until(lambda: listed("r2") and listed("r3"), timeout=0.5)
     assert steps_of(t3) == [1, 0] and steps_of(t4) == [0]
+
+
+def test_in_a_fleet_larger_than_beacon_answers_the_peers_take_turns_answering() -> None:
+    """A beacon asks at most about `beacon_answers` peers to answer: what a robot sends for
+    the indicator stays bounded as the fleet grows, each pair still measured (every
+    ceil(peers / beacon_answers) beacons), silent deaths seen as soon, losses still told."""
+    net = SimNet(seed=210)
+    names = product_fleet(net, 7, n_services=5, beacon_answers=2, ping_window=1000)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(3 * BEACON)
+    t0 = net.now
+    window = {n: len(net.nodes["r1"].core.peers[n].pings) for n in names[1:]}
+    net.run_for(60 * BEACON)
+    for name in names:
+        beacons = [wire.decode(d) for _, d, _ in sent(net, name, "alive", since=t0)]
+        assert beacons and all(isinstance(b, wire.Alive) and b.turns == 3 for b in beacons)
+        # The turns go round by sequence number (a turn no peer has is passed over).
+        turns = [b.seq % 3 for b in beacons if isinstance(b, wire.Alive) and b.seq is not None]
+        assert all(a != b for a, b in itertools.pairwise(turns))
+        # 6 peers' beacons, each answered by a third of them: about 2 replies a period, not 6.
+        replies = len(sent(net, name, "reply", since=t0))
+        assert 60 * 6 / 3 * 0.6 <= replies <= 60 * 6 / 3 * 1.5, replies
+    r1 = net.nodes["r1"].core
+    for peer in names[1:]:
+        p = r1.peers[peer]
+        # Measured every third beacon, and never counted lost for a beacon not its turn.
+        assert 60 / 3 * 0.8 <= len(p.pings) - window[peer] <= 60 / 3 * 1.2 + 1
+        assert p.indicator == 1.0 and p.rtt is not None
+    net.kill("r7")
+    took = net.wait_until(lambda: not any(net.sees(n, "r7") for n in names[:-1]), 3.5)
+    assert took <= 3 * BEACON + 0.1
+    # 30 % loss each way between r1 and r2: the indicator still tells 0.49.
+    net.pair_loss[("r1", "r2")] = net.pair_loss[("r2", "r1")] = 0.3
+    p = r1.peers["r2"]
+    p.pings.clear()
+    net.run_for(900 * BEACON)
+    assert p.indicator is not None and abs(p.indicator - 0.49) <= 0.08, p.indicator
+    # A fleet within beacon_answers: every peer answers every beacon, no turns said.
+    small = SimNet(seed=211)
+    few = product_fleet(small, 3, n_services=5, beacon_answers=2)
+    small.wait_until(lambda: small.all_see_all(few), timeout=2.0)
+    small.run_for(3 * BEACON)
+    for _, data, _ in sent(small, "r1", "alive"):
+        beacon = wire.decode(data)
+        assert isinstance(beacon, wire.Alive) and beacon.turns == 1
+
+
+def test_each_robot_answers_one_turn_of_a_beacons_turns() -> None:
+    ids = [f"robot-{i:03d}" for i in range(200)]
+    for turns in (1, 2, 5, 13):
+        for rid in ids[:50]:
+            assert sum(answers_beacon(rid, seq, turns) for seq in range(1000, 1000 + turns)) == 1
+        # Turns are about even: each takes a fair share of 200 robots.
+        shares = [sum(answers_beacon(rid, t, turns) for rid in ids) for t in range(turns)]
+        assert min(shares) >= 200 / turns * 0.5

@@ -213,6 +213,21 @@ def test_what_has_no_compact_form() -> None:
         encode(Response(NEW, "ssdp:all", LOCATION, 30), compact=True)
 
 
+def test_a_beacon_says_how_many_turns_its_pinged_robots_take() -> None:
+    beacon = Alive(NEW, "", 0, seq=301, turns=4)
+    data = encode(beacon, compact=True)
+    assert b" 301/4\r\n" in data and decode(data) == beacon
+    assert b" 301\r\n" in encode(Alive(NEW, "", 0, seq=301), compact=True)
+    for bad in (b" 301/1\r\n", b" 301/0\r\n", b" 301/x\r\n", b" 301/5000\r\n", b" /4\r\n"):
+        check_reject(decode(data.replace(b" 301/4\r\n", bad)), "bad-value", "X-SDFR")
+    with pytest.raises(ValueError, match="compact"):
+        encode(dataclasses.replace(beacon, location=LOCATION, max_age=30))
+    with pytest.raises(ValueError, match="seq"):
+        encode(dataclasses.replace(beacon, seq=None), compact=True)
+    with pytest.raises(ValueError, match="turns"):
+        encode(dataclasses.replace(beacon, turns=0), compact=True)
+
+
 def test_compact_rejects() -> None:
     good = encode(Alive(NEW, "", 0, seq=5), compact=True)
     assert isinstance(decode(good), Alive)
