@@ -385,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         nargs="*",
         default=None,
-        help="fleet sizes for the bytes-per-robot growth (default 2 6 20; none: skip)",
+        help="fleet sizes for the bytes-per-robot growth (default 2 6 20; --scale alone: skip)",
     )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where the run folder goes")
