@@ -166,7 +166,8 @@ class Node:
                     file=sys.stderr,
                     flush=True,
                 )
-                with contextlib.suppress(TimeoutError):
+                # asyncio.TimeoutError: on 3.10 it is not the builtin TimeoutError
+                with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(poke.wait(), pause)
                 wait = min(2 * wait, RETRY_MAX_S)
         finally:
