@@ -15,7 +15,6 @@ from __future__ import annotations
 from sdfr.wire.decode import decode, read_step, unpack_delta
 from sdfr.wire.encode import (
     check_service_fits,
-    delta_step,
     encode,
     encode_update_parts,
     last_step,
@@ -105,7 +104,6 @@ __all__ = [
     "check_service_fits",
     "decode",
     "delta_dictionary",
-    "delta_step",
     "encode",
     "encode_update_parts",
     "fleet_target",

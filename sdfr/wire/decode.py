@@ -214,8 +214,8 @@ def _decode_compact(
     )
     if kind == "update" and extra is not None:
         return _decode_compact_delta(origin, headers, body, extra)
-    if kind in ("update", "byebye") and extra is not None:
-        raise _Rejected("bad-value", f"X-SDFR {kind} with a seventh field")
+    if kind == "byebye" and extra is not None:
+        raise _Rejected("bad-value", "X-SDFR byebye with a seventh field")
     turns = 1
     if kind == "alive" and extra is not None and "/" in extra:
         extra, _, turns_text = extra.partition("/")

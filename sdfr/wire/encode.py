@@ -407,7 +407,7 @@ def _compact_fetch(msg: Discovery) -> list[str]:
     return [f"X-SDFR-WANT: {' '.join(words)}"] if words else []
 
 
-def delta_step(msg: Update, dictionary: bytes | None = None) -> bytes:
+def _delta_step(msg: Update, dictionary: bytes | None = None) -> bytes:
     """A compact delta's own step as it goes on the wire: its body, deflated against
     `dictionary` (`delta_dictionary` of its base set) when that is shorter."""
     body = _delta_body(msg, compact=True)
@@ -481,7 +481,7 @@ def _compact(msg: Message, dictionary: bytes | None = None) -> bytes:
             _check_unique_ids(msg.services)
             if msg.base is not None:
                 extra = _chain(msg, msg.base)
-                body = b"".join(step for _, step in msg.steps) + delta_step(msg, dictionary)
+                body = b"".join(step for _, step in msg.steps) + _delta_step(msg, dictionary)
             else:
                 if msg.removed or msg.steps:
                     raise ValueError("removed ids and steps belong to a delta Update (a base)")
