@@ -354,6 +354,7 @@ def _discovery_json(disc: DiscoveryState) -> dict[str, object]:
 
 async def self_info(request: Request) -> Response:
     state = state_of(request)
+    await state.fresh_status()
     disc = state.discovery()
     version, services = state.view.local()
     rec = disc.status
@@ -418,6 +419,7 @@ def state_problem(state: ApiState, disc: DiscoveryState) -> tuple[str, str] | No
 
 async def health(request: Request) -> Response:
     state = state_of(request)
+    await state.fresh_status()
     disc = state.discovery()
     failing = discovery_error(disc.status) if disc.up and disc.status else None
     warnings = health_warnings(disc.status) if disc.up and disc.status else []
@@ -504,7 +506,7 @@ def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
 async def keys_list(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
-    await state.fresh_counters()
+    await state.fresh_status()
     return json_response(_keys_json(state, _load_keyring(state)))
 
 
@@ -520,7 +522,7 @@ async def _one_text_field(request: Request, name: str, shape: str) -> str:
 async def keys_install(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
-    await state.fresh_counters()
+    await state.fresh_status()
     text = await _one_text_field(request, "key", '"<base64 of 32 bytes>"')
     try:
         key = keystore.parse_key(text, "key")
@@ -537,7 +539,7 @@ async def keys_install(request: Request) -> Response:
 async def keys_use(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
-    await state.fresh_counters()
+    await state.fresh_status()
     kid = request.match_info["id"]
     stored = keystore.use(_load_keyring(state), kid)
     _save_keyring(state, stored, f"signing with key {kid}")
@@ -556,7 +558,7 @@ async def keys_remove(request: Request) -> Response:
 async def keys_mode(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
-    await state.fresh_counters()
+    await state.fresh_status()
     mode = await _one_text_field(request, "mode", '"accept" | "sign" | "enforce"')
     stored = keystore.set_mode(_load_keyring(state), mode)
     _save_keyring(state, stored, f"mode {mode}")

@@ -201,6 +201,6 @@ def _process_metrics(
 
 async def metrics(request: Request) -> Response:
     state = state_of(request)
-    await state.fresh_counters()
+    await state.fresh_status()
     body = metrics_text(state).encode()
     return Response(body=body, headers={"Content-Type": CONTENT_TYPE})

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import json
 import logging
 import os
@@ -35,12 +34,16 @@ from sdfr.store import (
 log = logging.getLogger("sdfr.api")
 
 
-#: A heartbeat older than this means the discovery layer is down (it sends one every 2 s).
+#: A status older than this means the discovery layer is down (seconds). The discovery layer
+#: sends its status when it changes and when asked: a request that shows it asks first.
 HEARTBEAT_STALE = 5.0
-#: Counters older than this are asked for again before /metrics or /keys shows them (seconds).
+#: A status older than this is asked for again before an answer shows it (seconds).
 COUNTERS_FRESH = 0.5
-#: The longest such an answer waits for the discovery layer's status (seconds).
+#: The longest such an answer waits for the discovery layer's status (seconds) while the one
+#: it has still says "up" (only its counters would be older)...
 STATUS_WAIT = 0.25
+#: ... and while it would say "down" (a busy discovery layer is not called down too soon).
+LIVENESS_WAIT = 2.0
 #: Upper bounds (seconds) of the API latency histogram's buckets.
 LATENCY_BUCKETS = (
     0.0001,
@@ -368,33 +371,28 @@ class ApiState:
             if self.hub is not None:
                 self.hub.wake()
             return
-        if data.startswith(b"beat "):  # nothing changed but the counters: still alive
-            parts = data.split()
-            self._decode_live()
-            live = self.live_status
-            if live is not None and len(parts) == 3:
-                with contextlib.suppress(ValueError):
-                    if int(parts[1]) == live.pid:
-                        self.live_status = dataclasses.replace(live, heartbeat=float(parts[2]))
-            return
         self.live_raw = data
         self.live_at = time.monotonic()
         if self.live_came is not None:
             self.live_came.set()
 
-    async def fresh_counters(self) -> None:
-        """Make the discovery layer's counters current before answering with them (/metrics,
-        /keys): its whole status comes only when more than its counters changed, or every
-        5 ticks. If the last whole one is older than COUNTERS_FRESH, ask for one now
-        (b"status" on discovery.sock) and wait for it up to STATUS_WAIT; a discovery layer
-        that does not answer leaves the last one (and /health says why)."""
+    async def fresh_status(self) -> None:
+        """Make the discovery layer's status current before an answer shows it (/health,
+        /self, /metrics, /keys): it sends its status by itself only when more than its
+        counters changed. If the last one came more than COUNTERS_FRESH ago, ask for one now
+        (b"status" on discovery.sock) and wait for it, up to STATUS_WAIT, or LIVENESS_WAIT if
+        the last one is too old to say "up". A discovery layer that does not answer leaves
+        the last one (and /health says why); one that is not there is not waited for."""
         if time.monotonic() - self.live_at < COUNTERS_FRESH:
             return
+        self._decode_live()
+        live = self.live_status
+        up = live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE
         came = self.live_came = asyncio.Event()
         try:
             if notify_discovery(self.cfg.state_dir, b"status\n"):  # (else none is listening)
                 with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(came.wait(), STATUS_WAIT)
+                    await asyncio.wait_for(came.wait(), STATUS_WAIT if up else LIVENESS_WAIT)
         finally:
             if self.live_came is came:
                 self.live_came = None

@@ -138,7 +138,7 @@ class _StatusListener:
         sock.setblocking(False)
         asyncio.get_running_loop().add_reader(sock.fileno(), self._read)
         self.sock = sock
-        # The discovery layer sends its status every 2 s: ask for it now.
+        # The discovery layer sends its status when it changes or is asked: ask for it now.
         notify_discovery(self.path.parent, b"status\n")
 
     def _read(self) -> None:

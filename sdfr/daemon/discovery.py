@@ -37,15 +37,14 @@ from sdfr.wire import MESSAGE_TYPES
 
 log = logging.getLogger("sdfrd.discovery")
 
-#: The layer's tick: its status to the API layer (its heartbeat there) and its beat to the
-#: supervisor, the fallbacks for lost wake-ups (services, keyring), the address check.
+#: The layer's tick: its beat to the supervisor, its status to the API layer when it changed,
+#: the fallbacks for lost wake-ups (services, keyring), the address check.
 STATUS_PERIOD = 2.0
 #: The status file (read by an API layer that has no fresh datagram) is written when what it
 #: says changed, and at least this often (seconds): it also proves the state dir writable.
 STATUS_FILE_EVERY = 30.0
 #: Ticks between the fallbacks for lost wake-ups (the API layer's datagram on discovery.sock
-#: says when services or keys change; these look anyway), and between whole status records
-#: when nothing in them changed but the counters (the ticks between send a heartbeat alone).
+#: says when services or keys change; these look anyway).
 SLOW_TICKS = 5
 CONTROL_NAME = "discovery.sock"
 #: Failures of the layer's callbacks within this many seconds make /health say "failing".
@@ -123,8 +122,9 @@ class DiscoveryLayer:
             self.netlink = Netlink(self.iface)
         self.describe = DescribeServer(self._description)
         self._describe_task: asyncio.Task[None] | None = None
-        # The status goes to the API layer over a datagram socket every second: a heartbeat
-        # that needs no disk (a full state dir must not look like a dead discovery layer).
+        # The status goes to the API layer over a datagram socket when it changes and when the
+        # API asks (before it shows it): no disk, so a full state dir does not look like a
+        # dead discovery layer, and no datagram at all while nothing changes.
         self._status_sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._status_sock.setblocking(False)
         self._state_problem: tuple[float, str, str] | None = None
@@ -293,15 +293,17 @@ class DiscoveryLayer:
             notify.beat()
             await asyncio.sleep(STATUS_PERIOD)
             tick += 1
-            slow = tick % SLOW_TICKS == 0
             self._guard("periodic duties", self._check_address)
-            if slow:
+            if tick % SLOW_TICKS == 0:
                 self._guard("reloading the services", self._reload_services)
                 self._guard("reloading the keyring", self._reload_keyring)
-            if slow or self._status_signature() != self._status_sent:
+            written = self._status_written
+            if (
+                self._status_signature() != self._status_sent
+                or written is None
+                or time.monotonic() - written[1] >= STATUS_FILE_EVERY
+            ):
                 self._guard("writing the status", self._write_status)
-            else:  # nothing but counters changed: the heartbeat alone
-                self._guard("sending the heartbeat", self._send_heartbeat)
             if self.core.has_dirty:
                 self._guard("saving the history map", self._save)
 
@@ -323,14 +325,6 @@ class DiscoveryLayer:
             self.describe.where,
             self._keyring_stamp,
         )
-
-    def _send_heartbeat(self) -> None:
-        """`beat PID TIME`: the API layer's status stays the last whole one, now fresh."""
-        with contextlib.suppress(OSError):
-            self._status_sock.sendto(
-                f"beat {os.getpid()} {time.time():.3f}\n".encode(),
-                str(self.cfg.state_dir / STATUS_SOCKET),
-            )
 
     def _guard(self, what: str, duty: Callable[[], None]) -> None:
         """Run a callback's work; a failure is logged and counted (for /health), and the

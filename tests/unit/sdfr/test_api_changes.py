@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
+import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -14,6 +14,7 @@ import pytest
 from aiohttp import ClientSession
 
 from sdfr.api import HEARTBEAT_STALE, STATE, create_app
+from sdfr.api.state import COUNTERS_FRESH, LIVENESS_WAIT, STATUS_WAIT
 from sdfr.config import Config
 from sdfr.events import Event
 from sdfr.model import Service
@@ -263,16 +264,57 @@ async def test_metrics_build_process_and_peers(
     assert "sdfr_api_request_duration_seconds_count" in text
 
 
-def test_a_heartbeat_datagram_keeps_the_last_whole_status_fresh(cfg: Config, store: Store) -> None:
-    """The discovery layer sends its whole status only when more than its counters changed
-    (or every 5 ticks), and `beat PID TIME` otherwise: the API keeps the last whole one."""
+@aio
+async def test_an_answer_asks_the_discovery_layer_for_its_status_when_the_last_is_old(
+    cfg: Config, store: Store
+) -> None:
+    """The discovery layer sends its status only when it changed, or when asked: an answer
+    that shows it asks first (once COUNTERS_FRESH has passed), and waits for it, longer when
+    the status it has would say "down"; with no discovery layer listening it does not wait."""
     state = create_app(cfg, store)[STATE]
     stale = time.time() - HEARTBEAT_STALE - 1
     state.take_status(json.dumps(status(heartbeat=stale, peers_known=9)).encode())
     assert not state.discovery().up
-    state.take_status(f"beat {os.getpid()} {time.time():.3f}\n".encode())
-    now = state.discovery()
-    assert now.up and now.heartbeat_age is not None and now.heartbeat_age < 1.0
-    assert now.status is not None and now.status.peers_known == 9
-    state.take_status(f"beat 1 {stale:.3f}\n".encode())  # another process's: not ours
-    assert state.discovery().up
+    started = time.monotonic()
+    await state.fresh_status()  # nobody on discovery.sock: no wait
+    assert time.monotonic() - started < STATUS_WAIT
+
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    listener.bind(str(cfg.state_dir / "discovery.sock"))
+    listener.setblocking(False)
+    asked: list[bytes] = []
+
+    def answer() -> None:  # the discovery layer: its status now
+        asked.append(listener.recv(64))
+        state.take_status(json.dumps(status(heartbeat=time.time(), peers_known=4)).encode())
+
+    loop = asyncio.get_running_loop()
+    loop.add_reader(listener.fileno(), answer)
+    try:
+        await asyncio.sleep(COUNTERS_FRESH)
+        await state.fresh_status()
+        assert asked == [b"status\n"]
+        now = state.discovery()
+        assert now.up and now.heartbeat_age is not None and now.heartbeat_age < 1.0
+        assert now.status is not None and now.status.peers_known == 4
+        await state.fresh_status()  # fresh: not asked again
+        assert asked == [b"status\n"]
+    finally:
+        loop.remove_reader(listener.fileno())
+
+    try:
+        # A discovery layer that does not answer (hung, stopped): the last status stays.
+        await asyncio.sleep(COUNTERS_FRESH)
+        started = time.monotonic()
+        await state.fresh_status()
+        took = time.monotonic() - started
+        assert STATUS_WAIT <= took < LIVENESS_WAIT  # what it has says "up": a short wait
+        assert state.discovery().up and listener.recv(64) == b"status\n"
+        state.take_status(json.dumps(status(heartbeat=stale, peers_known=9)).encode())
+        await asyncio.sleep(COUNTERS_FRESH)
+        started = time.monotonic()
+        await state.fresh_status()
+        assert time.monotonic() - started >= LIVENESS_WAIT  # "down" only after this wait
+        assert not state.discovery().up
+    finally:
+        listener.close()
