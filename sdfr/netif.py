@@ -45,13 +45,16 @@ def mac(iface: str) -> str:
         raise ConfigError(f"iface: no interface named {iface!r}") from None
 
 
-def ipv4(iface: str) -> str | None:
-    """The interface's primary IPv4 address, or None when it has none."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            res = fcntl.ioctl(s.fileno(), _SIOCGIFADDR, struct.pack("256s", iface.encode()[:15]))
-        except OSError:
-            return None
+def ipv4(iface: str, sock: socket.socket | None = None) -> str | None:
+    """The interface's primary IPv4 address, or None when it has none. `sock` (any AF_INET
+    socket) spares a caller that asks often a socket of its own each time."""
+    if sock is None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            return ipv4(iface, s)
+    try:
+        res = fcntl.ioctl(sock.fileno(), _SIOCGIFADDR, struct.pack("256s", iface.encode()[:15]))
+    except OSError:
+        return None
     return socket.inet_ntoa(res[20:24])
 
 

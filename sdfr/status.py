@@ -1,8 +1,9 @@
 """The discovery layer's status, as the API layer reads it: one typed, versioned record.
 
-The discovery layer sends it every STATUS_PERIOD (2 s) as a datagram on STATE_DIR/status.sock,
-and writes it to STATE_DIR/discovery-status.json when it changed or every half a minute; the
-API layer answers /health, /self, /metrics and /keys from it. `to_json` and
+The discovery layer sends it as a datagram on STATE_DIR/status.sock when it changed (looked at
+every STATUS_PERIOD, 5 s) and when the API layer asks (which it does before an answer shows
+it), and writes it to STATE_DIR/discovery-status.json when it changed or every half a minute;
+the API layer answers /health, /self, /metrics and /keys from it. `to_json` and
 `DiscoveryStatus.from_json` are the only ways in and out: what one layer writes, the other
 reads with the same field names and types. A record of another FORMAT, or one that does not
 decode, reads as None (the discovery layer is then taken to be down).

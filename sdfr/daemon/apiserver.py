@@ -106,8 +106,8 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
                 sock_path.unlink()
 
 
-#: The layer's tick (seconds): its beat to the supervisor.
-BEAT_PERIOD = 2.0
+#: The layer's tick (seconds): its beat to the supervisor, three within its STALL_AFTER.
+BEAT_PERIOD = 5.0
 
 
 async def _beat() -> None:

@@ -39,7 +39,8 @@ log = logging.getLogger("sdfrd.discovery")
 
 #: The layer's tick: its beat to the supervisor, its status to the API layer when it changed,
 #: the fallbacks for lost wake-ups (services, keyring), the address check.
-STATUS_PERIOD = 2.0
+#: Every wake-up of an idle daemon costs CPU: 5 s is three beats within STALL_AFTER.
+STATUS_PERIOD = 5.0
 #: The status file (read by an API layer that has no fresh datagram) is written when what it
 #: says changed, and at least this often (seconds): it also proves the state dir writable.
 STATUS_FILE_EVERY = 30.0
@@ -476,7 +477,7 @@ class DiscoveryLayer:
             self._pump()
 
     def _check_address(self) -> None:
-        address = netif.ipv4(self.iface) or ""
+        address = netif.ipv4(self.iface, self.sock) or ""
         if address != self.address:
             log.info("address of %s is now %s", self.iface, address or "none")
             self.address = address

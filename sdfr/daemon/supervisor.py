@@ -12,7 +12,7 @@ while the layers run: it sleeps in `select` until a layer's first beat, a
 child's exit, a signal, or its next check (a few seconds away), so it stays
 the one part that nothing can hang. The supervisor restarts a layer that exits
 without being asked to, with a growing back-off, and one whose heartbeat (a
-byte a second on a pipe) stops for STALL_AFTER seconds: a hung or stopped
+byte every 5 s on a pipe) stops for STALL_AFTER seconds: a hung or stopped
 process is killed and started again. A layer that cannot start at all (exit
 status 2: an address that is not this machine's, permission denied, a bad
 configuration) ends sdfrd at once with status 2, since a restart cannot fix
@@ -59,8 +59,9 @@ CHECK_EVERY = 5.0
 STOP_GRACE = 5.0
 BACKOFF_MAX = 5.0
 STABLE_AFTER = 30.0
-#: A layer that has not beaten for this long (seconds) is hung or stopped: it is restarted.
-STALL_AFTER = 10.0
+#: A layer that has not beaten for this long (seconds) is hung or stopped: it is restarted
+#: (three of its beats: a loop a loaded machine holds back for a few seconds is not hung).
+STALL_AFTER = 15.0
 #: Longest a layer may take from its start to its first heartbeat.
 START_GRACE = 30.0
 #: A layer's exit status for "cannot start; a restart will not help" (its message says why).
