@@ -39,6 +39,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+from bench import compile_sdfr
 from netlab import procstat
 from netlab.lab import Lab
 
@@ -373,6 +374,7 @@ def main(argv: list[str] | None = None) -> int:
             "python": platform.python_version(),
             "kernel": platform.release(),
         },
+        "bytecode": compile_sdfr(),
         "targets": {"pss_mib": TARGET_PSS_MIB, "idle_cpu_percent": TARGET_IDLE_CPU_PERCENT},
         "paper": {"memory_mb": PAPER_MEMORY_MB, "memory": "under 0.3 % of 4 GB"},
     }

@@ -43,7 +43,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench import paper_figures
+from bench import compile_sdfr, paper_figures
 from bench.paper_lab import (
     ROOT,
     SAMPLE_EVERY_S,
@@ -420,6 +420,7 @@ def main(argv: list[str] | None = None) -> int:
             "kernel": platform.release(),
             "python": platform.python_version(),
         },
+        "bytecode": compile_sdfr(),
         "conditions_before": conditions(),
         "minutes_per_run": minutes,
         "mode": "smoke" if args.smoke else "quick" if args.quick else "full",

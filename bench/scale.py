@@ -38,6 +38,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from bench import compile_sdfr
 from netlab import analysis, scenario
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -260,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     if os.geteuid() != 0:
         err("bench: needs root (robots are network namespaces)")
         return 2
+    bytecode = compile_sdfr()
     base = scenario.load(scenario.find("scale-100"))
     sizes = []
     for n in (int(x) for x in args.robots.split(",")):
@@ -268,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, Any] = {
         "bench": "scale",
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "bytecode": bytecode,
         "beacon_s": base.beacon,
         "stay": "30 s (--quick)" if args.quick else "2 min",
         "sizes": sizes,
