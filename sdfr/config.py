@@ -28,6 +28,8 @@ DEFAULT_API = "127.0.0.1:8700"
 DEFAULT_DESCRIBE = "iface:8701"
 #: The host of `describe` that means "the fleet interface's address, wherever it moves".
 IFACE_HOST = "iface"
+#: How sdfrd runs its two layers (`layers`): as processes, or as threads of one process.
+LAYER_MODES = ("processes", "threads")
 
 
 def default_state_dir() -> Path:
@@ -69,6 +71,7 @@ class Config:
     api_allowed_hosts: tuple[str, ...] = ()
     api_allowed_origins: tuple[str, ...] = ()
     indicator_thresholds: tuple[float, ...] = (0.5, 0.8)
+    layers: str = "processes"
 
     @property
     def ssdp_interop_wanted(self) -> bool | None:
@@ -130,6 +133,8 @@ class Config:
             raise ConfigError(f"ttl: must be 1-255, got {self.ttl}")
         if self.addressing not in ("manual", "auto"):
             raise ConfigError(f"addressing: must be auto or manual, got {self.addressing!r}")
+        if self.layers not in LAYER_MODES:
+            raise ConfigError(f"layers: must be processes or threads, got {self.layers!r}")
         if self.log_level not in ("debug", "info", "warning", "error"):
             raise ConfigError(
                 f"log_level: must be debug, info, warning or error, got {self.log_level!r}"
@@ -293,6 +298,11 @@ _HELP: dict[str, str] = {
     "(default: none more)",
     "indicator_thresholds": "connection indicator levels (0-1, comma separated) whose crossing "
     "is a robot.indicator event of GET /events (default 0.5,0.8)",
+    "layers": "processes: the API and discovery layers are two processes forked by sdfrd's "
+    "supervisor, so that a kill -9, a crash or a hang of one leaves the other serving "
+    "(default); threads: they are two threads of one process, each with its own event loop, "
+    "restarted on its own when it ends, for half the memory; a hung layer then restarts the "
+    "whole daemon (its state is kept)",
     "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
     "http://dashboard.local:8080), comma separated; default none: a request a browser sends "
     "for another site's page is refused",

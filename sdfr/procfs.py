@@ -30,6 +30,11 @@ def running(pid: int, proc: Path = PROC) -> bool:
     return fields is not None and bool(fields) and fields[0] != "Z"
 
 
+def thread_running(pid: int, tid: int, proc: Path = PROC) -> bool:
+    """True while thread `tid` of process `pid` exists and is not a zombie."""
+    return running(tid, proc / str(pid) / "task")
+
+
 def start_time(pid: int, proc: Path = PROC) -> int | None:
     """When `pid` started, in clock ticks since boot (stat field 22): tells a process from a
     later one that reuses its pid."""

@@ -101,6 +101,9 @@ class StateDir:
 class DiscoveryStatus:
     pid: int
     heartbeat: float
+    #: The layer's thread (its kernel thread id) when it is a thread of sdfrd (`--layers
+    #: threads`): a layer whose thread ended is down though its process runs on.
+    thread: int | None = None
     robot_id: str | None = None
     fleet: int = 0
     iface: str | None = None

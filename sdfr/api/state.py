@@ -116,11 +116,14 @@ class DiscoveryState:
 
 
 def discovery_state(status: DiscoveryStatus | None, now: float | None = None) -> DiscoveryState:
-    """Up iff the status's pid is alive and its heartbeat is younger than HEARTBEAT_STALE."""
+    """Up iff the status's pid (and its thread, if it names one) is alive and its heartbeat
+    is younger than HEARTBEAT_STALE."""
     if status is None:
         return DiscoveryState(up=False, heartbeat_age=None, status=None)
     age = round((time.time() if now is None else now) - status.heartbeat, 3)
     up = age < HEARTBEAT_STALE and pid_alive(status.pid)
+    if up and status.thread is not None:
+        up = procfs.thread_running(status.pid, status.thread)
     return DiscoveryState(up=up, heartbeat_age=age, status=status)
 
 

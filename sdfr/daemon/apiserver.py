@@ -12,7 +12,6 @@ import errno
 import logging
 import os
 import resource
-import signal
 import socket
 import sys
 from pathlib import Path
@@ -171,8 +170,7 @@ def raise_fd_limit() -> None:
 async def _run(cfg: Config, store: Store) -> None:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+    notify.on_stop(loop, stop.set)
     await serve(cfg, store, stop)
 
 

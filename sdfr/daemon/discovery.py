@@ -13,9 +13,9 @@ import json
 import logging
 import os
 import random
-import signal
 import socket
 import struct
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -159,8 +159,7 @@ class DiscoveryLayer:
     # -- running ---------------------------------------------------------------------------
 
     async def run(self) -> None:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            self.loop.add_signal_handler(sig, self._stopping.set)
+        notify.on_stop(self.loop, self._stopping.set)
         self._write_status()
         status_task = asyncio.create_task(self._periodic())
         try:
@@ -581,6 +580,9 @@ class DiscoveryLayer:
         return status.DiscoveryStatus(
             pid=os.getpid(),
             heartbeat=time.time(),
+            thread=None
+            if threading.current_thread() is threading.main_thread()
+            else threading.get_native_id(),
             robot_id=self.cfg.robot_id,
             fleet=self.cfg.fleet,
             iface=self.iface,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 
@@ -20,10 +21,16 @@ class RepeatFilter(logging.Filter):
         super().__init__()
         self.window = window
         self.clock = clock
-        self._seen: dict[tuple[str, int, str], tuple[float, int]] = {}
+        self._seen: dict[tuple[int | None, str, int, str], tuple[float, int]] = {}
+
+    def forget_thread(self, ident: int) -> None:
+        """A layer starts (again) as thread `ident` (which a new thread may reuse): it logs its
+        start as a layer restarted as a new process does."""
+        self._seen = {k: v for k, v in self._seen.items() if k[0] != ident}
 
     def filter(self, record: logging.LogRecord) -> bool:
-        key = (record.name, record.levelno, str(record.msg))
+        # Each thread's own (a layer's thread forgets its kinds when it starts: `setup`).
+        key = (record.thread, record.name, record.levelno, str(record.msg))
         now = self.clock()
         last = self._seen.get(key)
         if last is not None and now - last[0] < self.window:
@@ -37,8 +44,40 @@ class RepeatFilter(logging.Filter):
         return True
 
 
+class _ByThread(logging.Formatter):
+    """One handler for a process whose layers are threads: each thread's records in the format
+    its layer set up (`setup`), the others' in the supervisor's."""
+
+    def __init__(self, default: logging.Formatter | None) -> None:
+        super().__init__()
+        self.default = default or logging.Formatter(logging.BASIC_FORMAT)
+        self.by_thread: dict[int | None, logging.Formatter] = {}
+
+    def format(self, record: logging.LogRecord) -> str:
+        return self.by_thread.get(record.thread, self.default).format(record)
+
+
+def share_with_threads() -> None:
+    """Let the layers that run as threads of this process each set up their own format."""
+    for handler in logging.getLogger().handlers:
+        if not isinstance(handler.formatter, _ByThread):
+            handler.setFormatter(_ByThread(handler.formatter))
+
+
 def setup(fmt: str, level: str | int = logging.INFO) -> None:
-    """Log to stderr in `fmt`, at `level`, through a RepeatFilter."""
+    """Log to stderr in `fmt`, at `level`, through a RepeatFilter. In a thread of a process
+    that shares its log with its threads (`share_with_threads`), only that thread's records
+    take `fmt`: the level and the handler are the process's."""
+    shared = any(isinstance(h.formatter, _ByThread) for h in logging.getLogger().handlers)
+    if shared and threading.current_thread() is not threading.main_thread():
+        ident = threading.get_ident()
+        for handler in logging.getLogger().handlers:
+            if isinstance(handler.formatter, _ByThread):
+                handler.formatter.by_thread[ident] = logging.Formatter(fmt)
+            for f in handler.filters:
+                if isinstance(f, RepeatFilter):
+                    f.forget_thread(ident)
+        return
     logging.basicConfig(format=fmt, level=level.upper() if isinstance(level, str) else level)
     for handler in logging.getLogger().handlers:
         if not any(isinstance(f, RepeatFilter) for f in handler.filters):

@@ -36,6 +36,7 @@ import os
 import select
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -142,6 +143,51 @@ class Child:
         self.signal(signal.SIGTERM)
 
 
+class LayerThread:
+    """A layer run as a thread of this process (`--layers threads`), seen as a Child is: its
+    exit status once its main returned. It cannot be killed: `kill` says so (a hung thread is
+    ended with the whole process, see Supervisor.restart_daemon)."""
+
+    def __init__(self, layer: Layer, target: Callable[[notify.Stopper], int]) -> None:
+        self.pid = os.getpid()
+        self.returncode: int | None = None
+        self.stopper = notify.Stopper()
+        self._done = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, args=(target,), name=f"sdfrd-{layer.name}", daemon=True
+        )
+        self._thread.start()
+
+    def _run(self, target: Callable[[notify.Stopper], int]) -> None:
+        try:
+            self.returncode = target(self.stopper)
+        finally:
+            self.returncode = 1 if self.returncode is None else self.returncode
+            self._done.set()
+
+    def poll(self) -> int | None:
+        return self.returncode if self._done.is_set() else None
+
+    def wait(self, timeout: float | None = None) -> int:
+        if not self._done.wait(timeout):
+            raise TimeoutError(f"the {self._thread.name} thread still runs")
+        assert self.returncode is not None
+        return self.returncode
+
+    def terminate(self) -> None:
+        self.stopper.stop()
+
+    def signal(self, signum: int) -> None:
+        self.terminate()
+
+    def kill(self) -> None:
+        raise HungThread(self._thread.name)
+
+
+class HungThread(Exception):
+    """A layer thread that has to be killed: only the end of the process ends it."""
+
+
 def resolve(cfg: Config) -> Config:
     """Fill in what defaults to the machine (interface, robot id) and check it exists."""
     iface = cfg.iface or netif.default_iface()
@@ -182,7 +228,7 @@ def lock_state_dir(state_dir: Path) -> int:
 class Layer:
     name: str
     main: Main
-    proc: Child | None = None
+    proc: Child | LayerThread | None = None
     started: float = 0.0
     backoff: float = 0.2
     restart_at: float = 0.0
@@ -219,15 +265,25 @@ class Supervisor:
         beats, beat_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
         sys.stdout.flush()
         sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:  # the layer
-            os._exit(self._run_layer(layer, beats, beat_w))
-        os.close(beat_w)
-        layer.proc = Child(pid)
+        if self.cfg.layers == "threads":
+            layer.proc = LayerThread(
+                layer, lambda stopper: self._run_thread(layer, beat_w, stopper)
+            )
+            pid = layer.proc.pid
+        else:
+            pid = os.fork()
+            if pid == 0:  # the layer
+                os._exit(self._run_layer(layer, beats, beat_w))
+            os.close(beat_w)
+            layer.proc = Child(pid)
         layer.beats = beats
         layer.last_beat = None
         layer.started = time.monotonic()
-        log.info("%s layer started (pid %d)", layer.name, pid)
+        # (Each layer's line a kind of its own: the log's RepeatFilter holds back a repeat.)
+        log.info(
+            f"{layer.name} layer started (%s)",
+            "a thread" if isinstance(layer.proc, LayerThread) else f"pid {pid}",
+        )
         self._write_pids()
 
     def _run_layer(self, layer: Layer, beats: int, beat_w: int) -> int:
@@ -266,6 +322,46 @@ class Supervisor:
                 sys.stdout.flush()
                 sys.stderr.flush()
         return code
+
+    def _run_thread(self, layer: Layer, beat_w: int, stopper: notify.Stopper) -> int:
+        """In the layer's thread: run it, its exit status (the thread then ends)."""
+        code = 1
+        try:
+            _prctl(_PR_SET_NAME, procfs.LAYER_COMM[layer.name].encode())  # (this thread's)
+            notify.host_thread(beat_w, stopper)
+            code = _run_main(layer, list(self.args))
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        except BaseException:
+            log.exception("%s layer failed", layer.name)
+        finally:
+            with contextlib.suppress(OSError):
+                os.close(beat_w)
+        return code
+
+    def restart_daemon(self, hung: Layer, silent: float) -> None:
+        """A layer thread that hangs cannot be killed alone: stop the others (discovery says
+        its byebye), then start sdfrd again in this process (exec: the same pid, the state
+        dir kept; the descriptors, the lock's among them, close on exec)."""
+        log.error(
+            "%s layer has not beaten for %.0f s (hung); a thread cannot be killed alone: "
+            "restarting sdfrd",
+            hung.name,
+            silent,
+        )
+        for layer in self.layers:
+            if layer is not hung and layer.proc is not None:
+                layer.proc.terminate()
+        deadline = time.monotonic() + STOP_GRACE
+        for layer in self.layers:
+            if layer is not hung and layer.proc is not None:
+                with contextlib.suppress(TimeoutError):
+                    layer.proc.wait(max(0.0, deadline - time.monotonic()))
+        self.pids_file.unlink(missing_ok=True)
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
 
     def _write_pids(self) -> None:
         pids = {
@@ -352,6 +448,9 @@ class Supervisor:
                     layer.backoff = 0.2
                 since = layer.last_beat if layer.last_beat is not None else layer.started
                 limit = STALL_AFTER if layer.last_beat is not None else START_GRACE
+                if now - since > limit and isinstance(proc, LayerThread):
+                    self.restart_daemon(layer, now - since)
+                    return
                 if now - since > limit:
                     log.warning(
                         "%s layer (pid %d) has not beaten for %.0f s (hung or stopped); "
@@ -403,6 +502,8 @@ class Supervisor:
                 layer.proc.wait(max(0.0, deadline - time.monotonic()))
             except TimeoutError:
                 log.warning("%s layer did not stop in %.0f s; killing it", layer.name, STOP_GRACE)
+                if isinstance(layer.proc, LayerThread):
+                    continue  # (a daemon thread: it ends with the process)
                 layer.proc.kill()
                 layer.proc.wait()
         self.pids_file.unlink(missing_ok=True)
@@ -421,6 +522,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = resolve(from_args(argv))
         logging.getLogger().setLevel(cfg.log_level.upper())
+        if cfg.layers == "threads":
+            logs.share_with_threads()
         store = Store(cfg.state_dir)  # a state directory we cannot use is reported once, here
         lock_fd = lock_state_dir(cfg.state_dir)
         try:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import os
 import re
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,8 +28,10 @@ from sdfr.api import (
     openapi_document,
     pid_alive,
 )
+from sdfr.api.state import discovery_state
 from sdfr.config import Config, location_max_len
 from sdfr.model import PeerRecord, Service
+from sdfr.status import DiscoveryStatus
 from sdfr.store import Store
 from tests.support.api import aio, serve, status
 
@@ -345,6 +349,24 @@ async def test_health_follows_the_discovery_heartbeat(
         # Degraded, the API still answers from the last known state.
         r = await c.get("/self")
         assert (await r.json())["address"] == "10.7.3.4"
+
+
+def test_a_discovery_layer_thread_that_ended_is_down_though_its_process_runs() -> None:
+    """With --layers threads the status names the layer's thread: its process (this one) runs
+    on after the thread ended, and the layer is down at once, not HEARTBEAT_STALE later."""
+    tids: list[int] = []
+    done = threading.Event()
+    layer = threading.Thread(target=lambda: (tids.append(threading.get_native_id()), done.wait()))
+    layer.start()
+    while not tids:
+        time.sleep(0.001)
+    record = DiscoveryStatus.from_json({**status(), "heartbeat": time.time(), "thread": tids[0]})
+    assert record is not None and record.thread == tids[0]
+    assert discovery_state(record).up
+    done.set()
+    layer.join()
+    assert not discovery_state(record).up
+    assert discovery_state(dataclasses.replace(record, thread=None)).up  # (a process's status)
 
 
 def test_pid_alive_treats_a_zombie_as_dead() -> None:

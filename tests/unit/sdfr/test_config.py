@@ -201,3 +201,13 @@ def test_the_core_takes_its_config_by_field_name_and_the_defaults_agree() -> Non
     assert core.ping_window == 7 and core.ssdp_interop is True
     shared = {f.name for f in fields(CoreConfig)} & {f.name for f in fields(Config)}
     assert shared >= {"beacon_interval", "miss_limit", "ping_window", "group", "port"}
+
+
+def test_the_layers_option(tmp_path: Path) -> None:
+    conf = tmp_path / "sdfrd.toml"
+    conf.write_text('layers = "threads"\n')
+    cfg = from_args(["--config", str(conf)])
+    assert cfg.layers == "threads" and from_args(to_args(cfg)) == cfg
+    assert from_args(["--config", str(conf), "--layers", "processes"]).layers == "processes"
+    with pytest.raises(ConfigError, match="layers: must be processes or threads, got 'thread'"):
+        from_args(["--layers", "thread"])

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import logging
+import threading
 
+import pytest
+
+from sdfr.daemon import logs
 from sdfr.daemon.logs import RepeatFilter
 
 
@@ -27,3 +31,38 @@ def test_a_flood_of_one_error_is_one_line_a_minute() -> None:
     # Other messages, levels and loggers are not held back by it.
     assert f.filter(record("another thing"))
     assert f.filter(record("accept failed: %s", "x", level=logging.WARNING))
+
+
+def test_layer_threads_each_log_in_their_format_and_a_restarted_one_starts_afresh(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """--layers threads: one handler for the process, each layer thread's lines in its own
+    format; a layer that starts again (a new thread, maybe with the old one's ident) is not
+    held back by what its earlier run logged."""
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    root.handlers = []
+    try:
+        logs.setup("sup %(message)s")
+        logs.share_with_threads()
+        log = logging.getLogger("sdfr.layer")
+
+        def layer(fmt: str, text: str) -> None:
+            logs.setup(fmt)
+            log.info(text)
+
+        for _ in range(2):
+            t = threading.Thread(target=layer, args=("[one] %(message)s", "up"))
+            t.start()
+            t.join()
+        t = threading.Thread(target=layer, args=("[two] %(message)s", "up"))
+        t.start()
+        t.join()
+        log.info("up")
+        err = capsys.readouterr().err.splitlines()
+    finally:
+        for handler in root.handlers:
+            handler.close()
+        root.handlers, level = saved
+        root.setLevel(level)
+    assert err == ["[one] up", "[one] up", "[two] up", "sup up"]
