@@ -42,6 +42,7 @@ from typing import Any
 from bench import compile_sdfr
 from netlab import procstat
 from netlab.lab import Lab
+from sdfr.config import LAYER_MODES, Config
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The issue's targets (16 MiB PSS for a daemon's tree, 0.05 % of a core idle per robot).
@@ -72,16 +73,24 @@ def wait(what: str, pred: Callable[[], bool], timeout: float) -> float:
     raise SystemExit(f"bench: {what}: not within {timeout:.0f} s")
 
 
-def on_cpu_ns(pid: int) -> int:
-    """Nanoseconds `pid` (all its threads alive now) has run on a CPU."""
-    total = 0
+def on_cpu_by_thread(pid: int) -> dict[str, int]:
+    """Nanoseconds each thread of `pid` alive now has run on a CPU, by thread name (comm:
+    sdfrd-api and sdfrd-discovery are the layers, as threads or as processes)."""
+    out: dict[str, int] = {}
     try:
         for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/comm") as f:
+                comm = f.read().strip()
             with open(f"/proc/{pid}/task/{task}/schedstat") as f:
-                total += int(f.read().split()[0])
+                out[comm] = out.get(comm, 0) + int(f.read().split()[0])
     except (OSError, ValueError, IndexError):
         pass
-    return total
+    return out
+
+
+def on_cpu_ns(pid: int) -> int:
+    """Nanoseconds `pid` (all its threads alive now) has run on a CPU."""
+    return sum(on_cpu_by_thread(pid).values())
 
 
 def daemon_tree(lab: Lab, name: str) -> list[int]:
@@ -129,7 +138,7 @@ def memory_phase(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
     before = loadavg()
     with Lab(f"fpm{os.getpid() % 10000}", workdir=tmp / "memory") as lab:
         lab.add_robots(names)
-        lab.start_all(beacon_interval=10.0)
+        lab.start_all(beacon_interval=10.0, layers=args.layers)
         publish(lab, "r1", args.services)
         for name in names[1:]:
             publish(lab, name, 2)
@@ -216,10 +225,12 @@ def cpu_phase(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
             profile_dir.mkdir()
             os.environ["SDFR_PROFILE"] = str(profile_dir)
             try:
-                lab.start("r1", beacon_interval=10.0)
+                lab.start("r1", beacon_interval=10.0, layers=args.layers)
             finally:
                 del os.environ["SDFR_PROFILE"]
-        lab.start_all(names[1:] if args.profile else names, beacon_interval=10.0)
+        lab.start_all(
+            names[1:] if args.profile else names, beacon_interval=10.0, layers=args.layers
+        )
         for name in names:
             publish(lab, name, 10)
         zc: dict[str, Any] = {}
@@ -252,19 +263,29 @@ def cpu_phase(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
         trees = {n: daemon_tree(lab, n) for n in measured}
         zc_pids = {n: zc[n][0].pid for n in names} if with_zc else {}
         pids = [p for t in trees.values() for p in t] + list(zc_pids.values())
-        t0, cpu0 = time.monotonic(), {p: on_cpu_ns(p) for p in pids}
+        t0, cpu0 = time.monotonic(), {p: on_cpu_by_thread(p) for p in pids}
         time.sleep(args.cpu_minutes * 60)
         wall = time.monotonic() - t0
-        cpu1 = {p: on_cpu_ns(p) for p in pids}
+        cpu1 = {p: on_cpu_by_thread(p) for p in pids}
 
-        def pct(p: int) -> float:
-            return 100.0 * (cpu1[p] - cpu0[p]) / 1e9 / wall
+        def pct(p: int, comm: str | None = None) -> float:
+            names = [comm] if comm is not None else list(cpu1[p])
+            spent = sum(cpu1[p].get(c, 0) - cpu0[p].get(c, 0) for c in names)
+            return 100.0 * spent / 1e9 / wall
+
+        def by_thread(tree: list[int]) -> dict[str, float]:
+            out: dict[str, float] = {}
+            for p in tree:
+                for comm in cpu1[p]:
+                    out[comm] = round(out.get(comm, 0.0) + pct(p, comm), 4)
+            return out
 
         per_robot: dict[str, dict[str, Any]] = {}
         for n, tree in trees.items():
             per_robot[n] = {
                 "percent": round(sum(pct(p) for p in tree), 4),
                 "by_process": {procstat.layer_of(p): round(pct(p), 4) for p in tree},
+                "by_thread": by_thread(tree),
             }
         sdfr_mem = {n: memory_of(t, procstat.layer_of) for n, t in trees.items()}
         zc_mem = {n: memory_of([p], lambda p: "zeroconf") for n, p in zc_pids.items()}
@@ -360,6 +381,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--phases", default="memory,cpu", help="memory, cpu or both")
     p.add_argument("--no-zeroconf", dest="zeroconf", action="store_false")
     p.add_argument("--profile", action="store_true", help="r1's layers under cProfile")
+    p.add_argument(
+        "--layers", choices=LAYER_MODES, default=Config().layers, help="how sdfrd runs its layers"
+    )
     p.add_argument("--keep-profile", type=Path, help="copy the .pstats files here")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-footprint.json")
     args = p.parse_args(argv)
@@ -375,6 +399,7 @@ def main(argv: list[str] | None = None) -> int:
             "kernel": platform.release(),
         },
         "bytecode": compile_sdfr(),
+        "layers": args.layers,
         "targets": {"pss_mib": TARGET_PSS_MIB, "idle_cpu_percent": TARGET_IDLE_CPU_PERCENT},
         "paper": {"memory_mb": PAPER_MEMORY_MB, "memory": "under 0.3 % of 4 GB"},
     }
