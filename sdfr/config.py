@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import difflib
 import ipaddress
 import os
 import re
@@ -13,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 from sdfr import version_text, wire
-from sdfr._compat import tomllib
 from sdfr.errors import ConfigError
 from sdfr.model import ROBOT_ID_RE
 from sdfr.protocol import (
@@ -71,7 +69,7 @@ class Config:
     api_allowed_hosts: tuple[str, ...] = ()
     api_allowed_origins: tuple[str, ...] = ()
     indicator_thresholds: tuple[float, ...] = (0.5, 0.8)
-    layers: str = "processes"
+    layers: str = "threads"
 
     @property
     def ssdp_interop_wanted(self) -> bool | None:
@@ -298,11 +296,11 @@ _HELP: dict[str, str] = {
     "(default: none more)",
     "indicator_thresholds": "connection indicator levels (0-1, comma separated) whose crossing "
     "is a robot.indicator event of GET /events (default 0.5,0.8)",
-    "layers": "processes: the API and discovery layers are two processes forked by sdfrd's "
-    "supervisor, so that a kill -9, a crash or a hang of one leaves the other serving "
-    "(default); threads: they are two threads of one process, each with its own event loop, "
-    "restarted on its own when it ends, for half the memory; a hung layer then restarts the "
-    "whole daemon (its state is kept)",
+    "layers": "threads: the API and discovery layers are two threads of one process, each with "
+    "its own event loop, each restarted on its own when it fails while the other serves; a hung "
+    "one restarts the whole daemon, state kept (default: half the memory of processes); "
+    "processes: they are two processes forked by sdfrd's supervisor, so that a kill -9, a "
+    "segfault or a hang of one leaves the other serving",
     "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
     "http://dashboard.local:8080), comma separated; default none: a request a browser sends "
     "for another site's page is refused",
@@ -360,6 +358,8 @@ def _coerce(name: str, raw: Any) -> Any:
 
 
 def load_toml(path: Path) -> dict[str, object]:
+    from sdfr._compat import tomllib  # (only a daemon given a file pays for the parser)
+
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
@@ -405,6 +405,8 @@ def load_toml(path: Path) -> dict[str, object]:
 
 def _hint(word: str, choices: Iterable[str]) -> str:
     """(did you mean 'x'?) for the closest of `choices`, or nothing."""
+    import difflib  # (only a mistake pays for it)
+
     close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
     return f" (did you mean {close[0]!r}?)" if close else ""
 

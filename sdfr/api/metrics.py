@@ -176,7 +176,10 @@ def metrics_text(state: ApiState) -> str:
         f'sdfr_build_info{{version="{__version__}",distribution="{DIST_NAME}",'
         f'python="{platform.python_version()}"}} 1'
     )
-    _process_metrics(out, family, {"api": os.getpid(), "discovery": status.pid if disc.up else 0})
+    pids = {"api": os.getpid(), "discovery": status.pid if disc.up else 0}
+    if pids["discovery"] == pids["api"]:  # --layers threads: one process
+        pids = {"both": pids["api"]}
+    _process_metrics(out, family, pids)
     return "\n".join(out) + "\n"
 
 
@@ -193,7 +196,7 @@ def _process_metrics(
         ("process_open_fds", "gauge", "Open file descriptors.", "fds"),
     )
     for name, kind, text, key in rows:
-        family(name, kind, text + " By layer (api, discovery).")
+        family(name, kind, text + " By layer (api, discovery; both: threads of one process).")
         for layer, values in sorted(stats.items()):
             if values is not None and values[key] >= 0:
                 out.append(f'{name}{{layer="{layer}"}} {values[key]!r}')

@@ -193,7 +193,7 @@ def test_one_daemon_per_state_dir(robots: Robots) -> None:
 
 def test_layers_have_independent_life_cycles(robots: Robots) -> None:
     r = robots
-    r.start(1)
+    r.start(1, "--layers", "processes")  # (threads: tests/ns/test_supervision.py)
     r.start(2)
     poll("r1 and r2 see each other", lambda: all_see_all(r, [1, 2]), 5.0)
     r.client(1).publish("mapper", "slam.map")

@@ -108,7 +108,7 @@ def test_a_layer_that_cannot_start_ends_sdfrd_at_once(
 
 
 def test_a_stopped_discovery_layer_is_restarted(tmp_path: Path, daemons: list[Daemon]) -> None:
-    d = Daemon(tmp_path)
+    d = Daemon(tmp_path, None, "--layers", "processes")
     daemons.append(d)
     poll("discovery up", lambda: d.health() == "up" or d.health(), 20.0)
     old = d.layers()["discovery"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import socket
 import time
 from pathlib import Path
@@ -249,12 +250,18 @@ async def test_metrics_build_process_and_peers(
     discovery_store.save_peers(FLEET)
     app = create_app(cfg, store)
     async with serve(app) as c:
-        # The discovery layer's status (its pid: this process, for the process metrics).
-        app[STATE].take_status(json.dumps(status(heartbeat=time.time())).encode())
+        # The discovery layer's status: a process of its own (here the test's parent: alive)...
+        other = status(heartbeat=time.time(), pid=os.getppid())
+        app[STATE].take_status(json.dumps(other).encode())
         await c.get("/health")
         r = await c.get("/metrics")
         assert r.headers["Content-Type"] == "text/plain; version=0.0.4; charset=utf-8"
         text = await r.text()
+        # ... or a thread of this process (--layers threads): its process once, as both.
+        app[STATE].take_status(json.dumps(status(heartbeat=time.time())).encode())
+        await asyncio.sleep(COUNTERS_FRESH)
+        one = await (await c.get("/metrics")).text()
+    assert 'process_open_fds{layer="both"}' in one and 'layer="api"' not in one
     assert 'sdfr_build_info{version="' in text and 'distribution="sdfr-robots"' in text
     assert 'sdfr_peer_indicator{robot_id="alpha"} 0.9' in text
     assert 'sdfr_peer_rtt_seconds{robot_id="alpha"} 0.00125' in text
