@@ -76,6 +76,12 @@ class Sampler:
                 if one.processes:
                     series = self.layers[name].setdefault(procstat.layer_of(pid), [])
                     series.append(Reading(one.time, one.cpu_s, one.pss_kb, one.rss_kb))
+                # Layers that are threads of it (--layers threads): their CPU, by layer.
+                for layer, tid in procstat.layer_threads(pid).items():
+                    one = procstat.Usage.read_thread(pid, tid)
+                    if one.processes:
+                        series = self.layers[name].setdefault(layer, [])
+                        series.append(Reading(one.time, one.cpu_s, one.pss_kb, one.rss_kb))
 
     def _run(self) -> None:
         while not self._stop.wait(SAMPLE_EVERY_S):

@@ -44,6 +44,20 @@ def layer_of(pid: int, proc: Path = Path("/proc")) -> str:
     return "supervisor" if b"sdfrd" in cmd or b"sdfr.daemon" in cmd else "other"
 
 
+def layer_threads(pid: int, proc: Path = Path("/proc")) -> dict[str, int]:
+    """The layers that run as threads of `pid` (sdfrd --layers threads): layer -> thread id."""
+    out = {}
+    try:
+        for task in (proc / str(pid) / "task").iterdir():
+            if task.name != str(pid):
+                comm = (task / "comm").read_text().strip()
+                if comm in LAYER_COMMS:
+                    out[LAYER_COMMS[comm]] = int(task.name)
+    except (OSError, ValueError):
+        pass
+    return out
+
+
 def children(proc: Path = Path("/proc")) -> dict[int, list[int]]:
     """parent pid -> its children's pids, for every process now."""
     return procfs.parent_map(proc)
@@ -86,6 +100,12 @@ class Usage:
             pss += _kb(proc / str(pid) / "smaps_rollup", "Pss:")
             n += 1
         return cls(time.monotonic(), cpu, rss, pss, n)
+
+    @classmethod
+    def read_thread(cls, pid: int, tid: int, proc: Path = Path("/proc")) -> Usage:
+        """One thread of `pid`: its CPU seconds (its memory is its process's: 0 here)."""
+        one = cls.read([tid], proc / str(pid) / "task")
+        return cls(one.time, one.cpu_s, 0, 0, one.processes)
 
 
 def window(start: Usage, end: Usage) -> dict[str, Any]:

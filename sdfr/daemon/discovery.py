@@ -361,6 +361,7 @@ class DiscoveryLayer:
         if self.addressing is not None and self.core.arrivals != self._arrivals:
             self._arrivals = self.core.arrivals
             self.addressing.refresh(now)
+        self._log_conflict()  # (at once, not at the next tick)
         self._pump_addr()
 
     def _on_control(self) -> None:

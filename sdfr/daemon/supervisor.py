@@ -1,8 +1,15 @@
 """`sdfrd`: resolves the configuration once, then runs and restarts the two layers.
 
-The API layer and the discovery layer are separate processes so that either
-can crash or be restarted while the other goes on; they share only the
-store in the state directory. The supervisor imports both layers' code once
+By default (`--layers threads`) the API layer and the discovery layer are two
+threads of this process, each running its own event loop, sharing only the
+store in the state directory: one interpreter and one copy of the code, half
+the memory of processes. A layer whose main ends (an exception, a bad start)
+is started again alone, in a new thread, while the other serves. A hung layer
+(its beats stop) cannot be killed alone: the supervisor stops the other one
+and starts sdfrd again in the same process (exec), its state kept.
+
+With `--layers processes` they are separate processes so that either can be
+killed, crash or hang while the other goes on. The supervisor imports both layers' code once
 and forks each layer from itself (no exec): the interpreter and every module
 the layers load are then one set of pages shared by the three processes
 (`gc.freeze` keeps the collector from writing to them), so the tree costs
