@@ -6,6 +6,9 @@ TLS) and `_hashlib` (hashlib's OpenSSL backend) map libssl and libcrypto, about 
 every sdfrd's process tree, for nothing sdfrd does. hashlib then uses CPython's own SHA-256
 and BLAKE2, and hmac its pure-Python HMAC (about 5 us a signed datagram instead of 2). A
 library that needs OpenSSL (pyroute2, with `--addressing auto`) gets it: `allow_openssl`.
+It also keeps out `typing_extensions`, which msgspec uses when it is installed and does
+without (typing's own `get_type_hints`, `Required` and `NotRequired` since Python 3.11, and
+msgspec's fallback on 3.10): 0.35 MiB less for each daemon (USS, measured with netlab).
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from __future__ import annotations
 import sys
 
 #: Modules sdfrd's processes never load (see the module docstring).
-NOT_LOADED = ("ssl", "_ssl", "_hashlib")
+NOT_LOADED = ("ssl", "_ssl", "_hashlib", "typing_extensions")
 
 
 def allow_openssl() -> None:
