@@ -32,7 +32,6 @@ layers beat, and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import errno
 import fcntl
 import gc
@@ -75,16 +74,26 @@ START_GRACE = 30.0
 #: A layer's exit status for "cannot start; a restart will not help" (its message says why).
 EXIT_CANNOT_START = 2
 _PR_SET_PDEATHSIG = 1
-_PR_SET_NAME = 15
 LOCK_NAME = "sdfrd.lock"
 
 #: A layer's entry point: its flags in, its exit status out.
 Main = Callable[[list[str]], int]
 
 
-def _prctl(option: int, arg: int | bytes) -> None:
+def _set_comm(name: str) -> None:
+    """Name the calling thread (a process's main thread names the process) in ps and
+    /proc/PID/comm, as prctl(PR_SET_NAME) does, without loading ctypes (0.37 MiB)."""
+    with contextlib.suppress(OSError):
+        Path(f"/proc/self/task/{threading.get_native_id()}/comm").write_text(name)
+
+
+def _die_with_parent() -> None:
+    """prctl(PR_SET_PDEATHSIG, SIGKILL): a forked layer ends with its supervisor. (`main`
+    imports ctypes before the fork, so that the layers share it.)"""
+    import ctypes
+
     libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(option, arg, 0, 0, 0)
+    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
 def preload() -> dict[str, Main]:
@@ -298,8 +307,8 @@ class Supervisor:
         the supervisor's loop: the caller exits with it)."""
         code = 1
         try:
-            _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-            _prctl(_PR_SET_NAME, procfs.LAYER_COMM[layer.name].encode())
+            _die_with_parent()
+            _set_comm(procfs.LAYER_COMM[layer.name])
             signal.set_wakeup_fd(-1)
             for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD):
                 signal.signal(signum, signal.SIG_DFL)
@@ -334,7 +343,7 @@ class Supervisor:
         """In the layer's thread: run it, its exit status (the thread then ends)."""
         code = 1
         try:
-            _prctl(_PR_SET_NAME, procfs.LAYER_COMM[layer.name].encode())  # (this thread's)
+            _set_comm(procfs.LAYER_COMM[layer.name])
             notify.host_thread(beat_w, stopper)
             code = _run_main(layer, list(self.args))
         except SystemExit as exc:
@@ -552,6 +561,8 @@ def main(argv: list[str] | None = None) -> int:
         # Join the fleet's WiFi before the layers start; a wired interface, or wifi = off, or
         # no secret configured: the radio is left alone.
         wifi.setup(cfg)
+        if cfg.layers == "processes":
+            importlib.import_module("ctypes")  # (_die_with_parent's, before the fork: shared)
         mains = preload()
     except SdfrError as exc:
         print(f"sdfrd: {exc}", file=sys.stderr)
