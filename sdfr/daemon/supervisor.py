@@ -161,8 +161,8 @@ class Child:
 
 class LayerThread:
     """A layer run as a thread of this process (`--layers threads`), seen as a Child is: its
-    exit status once its main returned. It cannot be killed: `kill` says so (a hung thread is
-    ended with the whole process, see Supervisor.restart_daemon)."""
+    exit status once its main returned. It has no `kill`: a hung thread ends only with the
+    whole process (Supervisor.restart_daemon)."""
 
     def __init__(self, layer: Layer, target: Callable[[notify.Stopper], int]) -> None:
         self.pid = os.getpid()
@@ -192,16 +192,6 @@ class LayerThread:
 
     def terminate(self) -> None:
         self.stopper.stop()
-
-    def signal(self, signum: int) -> None:
-        self.terminate()
-
-    def kill(self) -> None:
-        raise HungThread(self._thread.name)
-
-
-class HungThread(Exception):
-    """A layer thread that has to be killed: only the end of the process ends it."""
 
 
 def resolve(cfg: Config) -> Config:
@@ -464,10 +454,10 @@ class Supervisor:
                     layer.backoff = 0.2
                 since = layer.last_beat if layer.last_beat is not None else layer.started
                 limit = STALL_AFTER if layer.last_beat is not None else START_GRACE
-                if now - since > limit and isinstance(proc, LayerThread):
-                    self.restart_daemon(layer, now - since)
-                    return
                 if now - since > limit:
+                    if isinstance(proc, LayerThread):  # (it cannot be killed alone)
+                        self.restart_daemon(layer, now - since)
+                        return
                     log.warning(
                         "%s layer (pid %d) has not beaten for %.0f s (hung or stopped); "
                         "killing it to start it again",
