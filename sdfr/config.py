@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import argparse
 import ipaddress
 import os
 import re
+import sys
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sdfr import version_text, wire
 from sdfr.errors import ConfigError
@@ -21,6 +21,9 @@ from sdfr.protocol import (
     REPLY_DELAY_MAX,
     CoreConfig,
 )
+
+if TYPE_CHECKING:
+    import argparse
 
 DEFAULT_API = "127.0.0.1:8700"
 DEFAULT_DESCRIBE = "iface:8701"
@@ -412,6 +415,8 @@ def _hint(word: str, choices: Iterable[str]) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import argparse  # (imported here: see _plain_flags)
+
     p = argparse.ArgumentParser(
         prog="sdfrd",
         description="SDfR daemon: discovers the reachable robots of a fleet and their services, "
@@ -428,16 +433,47 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _plain_flags(argv: list[str]) -> dict[str, str] | None:
+    """The flags of `argv` when every one is spelled in full as `--name VALUE` or
+    `--name=VALUE`, by name; else None, and argparse reads them.
+
+    Why: argparse (and the shutil it pulls in) costs a running daemon 0.75 MiB of its ~16,
+    for reading a handful of flags once. A service manager's command line is plain; help,
+    --version, abbreviations, a value that looks like a flag and every mistake still go to
+    build_parser(), the one description of the flags, so they read and fail the same way.
+    """
+    names = {"--" + f.name.replace("_", "-"): f.name for f in fields(Config)}
+    names["--config"] = "config"
+    out: dict[str, str] = {}
+    i = 0
+    while i < len(argv):
+        flag, eq, value = argv[i].partition("=")
+        if flag not in names:
+            return None
+        if not eq:
+            if i + 1 == len(argv) or argv[i + 1].startswith("-"):
+                return None
+            i += 1
+            value = argv[i]
+        out[names[flag]] = value
+        i += 1
+    return out
+
+
 def from_args(argv: list[str] | None = None) -> Config:
     """Defaults, then the TOML file, then flags; validated."""
-    args = build_parser().parse_args(argv)
+    if argv is None:
+        argv = sys.argv[1:]
+    flags = _plain_flags(argv)
+    if flags is None:
+        args = vars(build_parser().parse_args(argv))
+        flags = {name: raw for name, raw in args.items() if raw is not None}
     values: dict[str, Any] = {}
-    if args.config is not None:
-        values.update(load_toml(args.config))
+    if "config" in flags:
+        values.update(load_toml(Path(flags["config"])))
     for f in fields(Config):
-        raw = getattr(args, f.name)
-        if raw is not None:
-            values[f.name] = _coerce(f.name, raw)
+        if f.name in flags:
+            values[f.name] = _coerce(f.name, flags[f.name])
     return replace(Config(), **values).validate()
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from sdfr import config
 from sdfr.config import Config, build_parser, from_args, to_args
 from sdfr.daemon import supervisor
 from sdfr.errors import ConfigError
@@ -88,6 +89,54 @@ def test_missing_config_file(tmp_path: Path) -> None:
 def test_to_args_round_trips() -> None:
     cfg = Config(iface="eth0", fleet=4, robot_id="r9", beacon_interval=1.5, state_dir=Path("/x"))
     assert from_args(to_args(cfg)) == cfg
+
+
+PLAIN = [
+    [],
+    ["--iface", "eth0", "--fleet", "3"],
+    ["--iface=eth0", "--fleet=3", "--fleet", "4"],  # the last one wins
+    ["--state-dir", "/x y", "--api", "0.0.0.0:1", "--api-allowed-hosts", "a,b"],
+    ["--log-level="],
+]
+# Every one of these goes to argparse: an abbreviation, a value that looks like a flag, a
+# negative number, a lone flag, a positional, `--`, and a short option.
+NOT_PLAIN = [
+    ["--beacon", "2"],
+    ["--iface", "--fleet", "3"],
+    ["--fleet", "-1"],
+    ["--iface"],
+    ["eth0"],
+    ["--", "--iface", "eth0"],
+    ["-h"],
+]
+
+
+@pytest.mark.parametrize("argv", PLAIN + NOT_PLAIN)
+def test_plain_flags_read_as_argparse_reads_them(argv: list[str]) -> None:
+    """The daemon reads a plain command line without argparse; it must agree with argparse
+    on every one it takes, and leave every other to it."""
+    try:
+        args = vars(build_parser().parse_args(argv))
+    except SystemExit:
+        args = None
+    plain = config._plain_flags(argv)
+    if argv in NOT_PLAIN:
+        assert plain is None
+    else:
+        assert args is not None and plain is not None
+        assert plain == {k: str(v) for k, v in args.items() if v is not None}
+
+
+def test_argparse_still_reads_and_rejects_what_is_not_plain(tmp_path: Path) -> None:
+    assert from_args(["--beacon", "2.5"]).beacon_interval == 2.5  # (an abbreviation)
+    with pytest.raises(SystemExit):
+        from_args(["--iface"])
+    with pytest.raises(SystemExit):
+        from_args(["--no-such-flag", "1"])
+    conf = tmp_path / "c.toml"
+    conf.write_text("fleet = 6\n")
+    assert from_args(["--config", str(conf)]).fleet == 6
+    assert from_args([f"--config={conf}", "--fleet", "7"]).fleet == 7
 
 
 def test_help_documents_every_option() -> None:
