@@ -22,18 +22,21 @@ from collections.abc import Callable
 from dataclasses import replace
 from ipaddress import IPv4Address
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sdfr import events, keystore, netif, status
-from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
 from sdfr.daemon import logs, notify
-from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.daemon.describe import DescribeServer
 from sdfr.errors import SdfrError
 from sdfr.model import PeerRecord
 from sdfr.protocol import Core
 from sdfr.store import STATUS_SOCKET, StateWriteError, Store
 from sdfr.wire import MESSAGE_TYPES
+
+if TYPE_CHECKING:
+    from sdfr.addressing import Addressing
+    from sdfr.daemon.arp import ArpSocket, Netlink
 
 log = logging.getLogger("sdfrd.discovery")
 
@@ -117,6 +120,10 @@ class DiscoveryLayer:
         self.arp: ArpSocket | None = None
         self.netlink: Netlink | None = None
         if cfg.addressing == "auto":
+            # (imported here: a robot with a fixed address never pays for the ARP machinery)
+            from sdfr.addressing import AddrConfig, Addressing
+            from sdfr.daemon.arp import ArpSocket, Netlink
+
             mac = netif.mac(self.iface)
             self.addressing = Addressing(AddrConfig(cfg.fleet, mac), random.Random())
             self.arp = ArpSocket(self.iface, bytes.fromhex(mac.replace(":", "")))
@@ -247,6 +254,8 @@ class DiscoveryLayer:
         machine, arp, netlink = self.addressing, self.arp, self.netlink
         if machine is None or arp is None or netlink is None:
             return
+        from sdfr.addressing import Assign, Release
+
         for action in machine.actions():
             if isinstance(action, Assign):
                 netlink.assign(action.ip)
