@@ -560,7 +560,6 @@ class DiscoveryLayer:
         """The status to the API layer, and to the file when what it says changed (the
         heartbeat and the counters aside) or STATUS_FILE_EVERY has passed: replacing a file
         every tick was the layer's largest idle cost."""
-        self._log_conflict()
         record = self._status().to_json()
         self._send_status(record)
         key = {k: v for k, v in record.items() if k not in ("heartbeat", "counters")}
