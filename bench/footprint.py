@@ -77,14 +77,12 @@ def on_cpu_by_thread(pid: int) -> dict[str, int]:
     """Nanoseconds each thread of `pid` alive now has run on a CPU, by thread name (comm:
     sdfrd-api and sdfrd-discovery are the layers, as threads or as processes)."""
     out: dict[str, int] = {}
-    try:
-        for task in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{task}/comm") as f:
-                comm = f.read().strip()
-            with open(f"/proc/{pid}/task/{task}/schedstat") as f:
+    for tid, comm in procstat.threads(pid).items():
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
                 out[comm] = out.get(comm, 0) + int(f.read().split()[0])
-    except (OSError, ValueError, IndexError):
-        pass
+        except (OSError, ValueError, IndexError):  # (a thread that just ended)
+            pass
     return out
 
 

@@ -11,6 +11,7 @@ memory they really take; RSS counts shared pages once per process.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import struct
 import time
@@ -44,18 +45,25 @@ def layer_of(pid: int, proc: Path = Path("/proc")) -> str:
     return "supervisor" if b"sdfrd" in cmd or b"sdfr.daemon" in cmd else "other"
 
 
-def layer_threads(pid: int, proc: Path = Path("/proc")) -> dict[str, int]:
-    """The layers that run as threads of `pid` (sdfrd --layers threads): layer -> thread id."""
+def threads(pid: int, proc: Path = Path("/proc")) -> dict[int, str]:
+    """The threads of `pid` alive now: thread id -> name (comm); none if it is gone."""
     out = {}
     try:
         for task in (proc / str(pid) / "task").iterdir():
-            if task.name != str(pid):
-                comm = (task / "comm").read_text().strip()
-                if comm in LAYER_COMMS:
-                    out[LAYER_COMMS[comm]] = int(task.name)
+            with contextlib.suppress(OSError):  # (a thread that just ended)
+                out[int(task.name)] = (task / "comm").read_text().strip()
     except (OSError, ValueError):
         pass
     return out
+
+
+def layer_threads(pid: int, proc: Path = Path("/proc")) -> dict[str, int]:
+    """The layers that run as threads of `pid` (sdfrd --layers threads): layer -> thread id."""
+    return {
+        LAYER_COMMS[comm]: tid
+        for tid, comm in threads(pid, proc).items()
+        if tid != pid and comm in LAYER_COMMS
+    }
 
 
 def children(proc: Path = Path("/proc")) -> dict[int, list[int]]:
