@@ -32,12 +32,15 @@ def pin_malloc() -> None:
     trim threshold to twice that, in every thread's heap. Reading a large .pyc, resizing the
     interned-strings table and asyncio's 256 KiB socket reads (each freed whole when the
     peer closes) raise them to ~0.25 MiB and ~0.5 MiB, after which each heap keeps up to
-    0.5 MiB it has freed: 0.6 MiB of a 16 MiB daemon with 100 services (measured with
-    bench.footprint). A fixed threshold turns the adjustment off. The tunables are read when
-    the process starts, hence the exec (same pid, same argv; ~30 ms); a user's own
-    GLIBC_TUNABLES or MALLOC_* settings are left alone, as is a C library that is not glibc.
+    0.5 MiB it has freed: 0.5 MiB of a 16 MiB daemon with 100 services (measured alone in a
+    namespace; docs/fleet-behaviour.md). A fixed threshold turns the adjustment off. The
+    tunables are read when the process starts, hence the exec (same pid, same argv; ~36 ms);
+    a user's own GLIBC_TUNABLES or MALLOC_* settings are left alone, as is a C library that
+    is not glibc.
     """
     if os.environ.get("GLIBC_TUNABLES") or any(k.startswith("MALLOC_") for k in os.environ):
+        return
+    if not sys.executable or not sys.orig_argv:  # (an embedded interpreter: nothing to exec)
         return
     try:
         if not os.confstr("CS_GNU_LIBC_VERSION"):
@@ -47,7 +50,7 @@ def pin_malloc() -> None:
     os.environ["GLIBC_TUNABLES"] = MALLOC_TUNABLES
     try:
         os.execv(sys.executable, sys.orig_argv)
-    except OSError:  # then without: nothing but memory depends on it
+    except (OSError, ValueError):  # then without: nothing but memory depends on it
         del os.environ["GLIBC_TUNABLES"]
 
 
