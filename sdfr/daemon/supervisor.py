@@ -355,14 +355,7 @@ class Supervisor:
             hung.name,
             silent,
         )
-        for layer in self.layers:
-            if layer is not hung and layer.proc is not None:
-                layer.proc.terminate()
-        deadline = time.monotonic() + STOP_GRACE
-        for layer in self.layers:
-            if layer is not hung and layer.proc is not None:
-                with contextlib.suppress(TimeoutError):
-                    layer.proc.wait(max(0.0, deadline - time.monotonic()))
+        self._stop_layers([layer for layer in self.layers if layer is not hung])
         self.pids_file.unlink(missing_ok=True)
         logging.shutdown()
         sys.stdout.flush()
@@ -494,22 +487,27 @@ class Supervisor:
             layer.restarts += 1
             self.spawn(layer)
 
-    def shutdown(self) -> int:
-        notify.notify("STOPPING=1")
-        # Discovery first, so its Byebye goes out while the API still answers.
-        for layer in reversed(self.layers):
+    def _stop_layers(self, layers: list[Layer]) -> list[Layer]:
+        """Ask `layers` to stop and wait for them, STOP_GRACE in all; those still running.
+        Discovery first, so its Byebye goes out while the API still answers."""
+        for layer in reversed(layers):
             if layer.proc is not None and layer.proc.poll() is None:
                 layer.proc.terminate()
         deadline = time.monotonic() + STOP_GRACE
-        for layer in self.layers:
-            if layer.proc is None:
-                continue
-            try:
-                layer.proc.wait(max(0.0, deadline - time.monotonic()))
-            except TimeoutError:
-                log.warning("%s layer did not stop in %.0f s; killing it", layer.name, STOP_GRACE)
-                if isinstance(layer.proc, LayerThread):
-                    continue  # (a daemon thread: it ends with the process)
+        late = []
+        for layer in layers:
+            if layer.proc is not None:
+                try:
+                    layer.proc.wait(max(0.0, deadline - time.monotonic()))
+                except TimeoutError:
+                    late.append(layer)
+        return late
+
+    def shutdown(self) -> int:
+        notify.notify("STOPPING=1")
+        for layer in self._stop_layers(self.layers):
+            log.warning("%s layer did not stop in %.0f s; killing it", layer.name, STOP_GRACE)
+            if isinstance(layer.proc, Child):  # (a thread ends with the process)
                 layer.proc.kill()
                 layer.proc.wait()
         self.pids_file.unlink(missing_ok=True)
