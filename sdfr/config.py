@@ -290,7 +290,9 @@ _HELP: dict[str, str] = {
     "first start; `sdfr keys` manages the keyring after that (default: none, the fleet is open)",
     "auth": "with a key: accept (send unsigned, accept both), sign (send signed, accept both) or "
     "enforce (send signed, accept signed only) -- the steps of moving a fleet to a key without "
-    "a flag day (default: the keyring's mode; enforce for a new keyring)",
+    "a flag day. It seeds a new keyring and can raise a keyring's mode, never lower it: "
+    "`sdfr keys mode` does that on the running daemon (default: the keyring's mode; enforce "
+    "for a new keyring)",
     "ssdp_interop": "answer plain SSDP clients' ssdp:all searches (read-only): auto (only while "
     "the fleet has no key), on or off (default auto)",
     "api_allowed_hosts": "more names the local API may be reached by (the Host header), comma "

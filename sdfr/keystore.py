@@ -256,12 +256,19 @@ def save_keyring(
     save(state_dir, StoredKeyring(keyring, kept))
 
 
+#: How much each mode refuses: a configured mode is applied to a live keyring only upward.
+STRENGTH: Mapping[str, int] = {"accept": 0, "sign": 1, "enforce": 2}
+
+
 def seed_keyring(state_dir: Path, key_file: Path | None, mode: str | None) -> Keyring:
     """At start: the keyring the daemon runs with.
 
-    A keyring with keys is authoritative (a rotation may have replaced the key in
-    `key_file`); `mode`, when given, replaces its mode.  An empty keyring takes the key of
-    `key_file`, in `mode` (default enforce).  Neither: the fleet is open.
+    A keyring with keys is authoritative (a rotation may have replaced the key in `key_file`,
+    `sdfr keys mode` may have changed its mode).  `mode` (the configuration's `auth`) seeds a
+    new keyring and may raise a live one's mode (accept < sign < enforce), never lower it: a
+    weaker configured mode is not applied and a warning says how to lower it live.  An empty
+    keyring takes the key of `key_file`, in `mode` (default enforce).  Neither: the fleet is
+    open.
     """
     stored = load(state_dir)
     ring = stored.keyring
@@ -278,12 +285,32 @@ def seed_keyring(state_dir: Path, key_file: Path | None, mode: str | None) -> Ke
                     key_id(key),
                     keyring_path(state_dir),
                 )
-        if mode is not None and mode != ring.mode:
-            log.info("auth: mode %s (was %s)", mode, ring.mode)
+        if mode is not None and STRENGTH[mode] > STRENGTH[ring.mode]:
+            log.info("auth: mode %s (was %s), as the configuration says", mode, ring.mode)
             stored = replace(stored, keyring=replace(ring, mode=mode))
             save(state_dir, stored)
+        elif mode is not None and mode != ring.mode:
+            log.warning(
+                "auth = %s in the configuration is weaker than the keyring's mode %s (%s): "
+                "kept %s, since a configured mode never weakens a live keyring; to weaken it "
+                "run `sdfr keys mode %s` on the running daemon, else set auth = %s or leave "
+                "it out of the configuration",
+                mode,
+                ring.mode,
+                keyring_path(state_dir),
+                ring.mode,
+                mode,
+                ring.mode,
+            )
         return stored.keyring
     if key_file is None:
+        if mode is not None:
+            log.warning(
+                "auth = %s in the configuration, but this robot has no key (no key_file, and "
+                "no key in %s): the fleet is open; set key_file or `sdfr keys install FILE`",
+                mode,
+                keyring_path(state_dir),
+            )
         return OPEN
     key = read_key_file(key_file)
     new_mode: Mode = mode if mode is not None else "enforce"

@@ -143,11 +143,50 @@ def test_seed_keeps_a_keyring_a_rotation_changed(
         ring = keystore.seed_keyring(state, key_file(tmp_path, K1), None)
     assert ring == Keyring.of([K2])  # the stored keyring wins over a stale key_file
     assert "update key_file" in caplog.text
-    # An explicit mode replaces the stored one, and is stored.
-    assert keystore.seed_keyring(state, None, "sign").mode == "sign"
-    assert keystore.load_keyring(state).mode == "sign"
     with pytest.raises(ConfigError, match="auth"):
         keystore.seed_keyring(state, None, "lax")
+
+
+@pytest.mark.parametrize(
+    ("live", "configured"), [("enforce", "sign"), ("enforce", "accept"), ("sign", "accept")]
+)
+def test_a_configured_mode_never_weakens_a_live_keyring(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, live: str, configured: str
+) -> None:
+    """`sdfr keys mode enforce` on the running daemon, then a restart with an older `auth` in
+    the config: the keyring keeps its mode, and the daemon says why and how to change it."""
+    state = tmp_path / "state"
+    keystore.save(state, StoredKeyring(Keyring.of([K1], mode=live)))
+    before = keystore.keyring_path(state).read_bytes()
+    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+        ring = keystore.seed_keyring(state, key_file(tmp_path, K1), configured)
+    assert ring.mode == live
+    assert keystore.load_keyring(state).mode == live
+    assert keystore.keyring_path(state).read_bytes() == before  # not rewritten
+    [warning] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert f"auth = {configured}" in warning and f"mode {live}" in warning
+    assert f"sdfr keys mode {configured}" in warning
+
+
+@pytest.mark.parametrize(
+    ("live", "configured"), [("accept", "sign"), ("accept", "enforce"), ("sign", "enforce")]
+)
+def test_a_stronger_configured_mode_raises_the_keyring(
+    tmp_path: Path, live: str, configured: str
+) -> None:
+    state = tmp_path / "state"
+    keystore.save(state, StoredKeyring(Keyring.of([K1], mode=live)))
+    assert keystore.seed_keyring(state, None, configured).mode == configured
+    assert keystore.load_keyring(state).mode == configured
+
+
+def test_a_configured_mode_without_any_key_is_said_to_leave_the_fleet_open(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+        assert keystore.seed_keyring(tmp_path, None, "enforce") == OPEN
+    assert "auth = enforce" in caplog.text and "open" in caplog.text
+    assert not keystore.keyring_path(tmp_path).exists()
 
 
 def test_install_use_remove_and_mode(tmp_path: Path) -> None:
