@@ -9,13 +9,13 @@ from __future__ import annotations
 import heapq
 import itertools
 import random
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from sdfr import wire
 from sdfr.auth import OPEN, Keyring
-from sdfr.model import Service
+from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Addr, Core, CoreConfig
 
 
@@ -54,6 +54,13 @@ class SimNet:
         self.dropped = 0
         #: Optional veto on each (sender, receiver, datagram): False drops it.
         self.filter: Callable[[str, str, bytes], bool] | None = None
+        #: Observers (an adversary, an invariant checker): every datagram a node is about to
+        #: read, with its source, whether the medium or `inject` brings it; every datagram a
+        #: node sends, with its destination (None: multicast); and the end of every event
+        #: of the loop (a delivery, a timer, a `call_at` action).
+        self.on_receive: Callable[[Node, bytes, Addr], None] | None = None
+        self.on_send: Callable[[Node, bytes, Addr | None], None] | None = None
+        self.after_event: Callable[[], None] | None = None
 
     # -- building ------------------------------------------------------------------------
 
@@ -87,7 +94,17 @@ class SimNet:
             self._pump(node)
         return node
 
-    def restart(self, name: str, *, boot_id: int, graceful: bool = True, **kw: object) -> Node:
+    def restart(
+        self,
+        name: str,
+        *,
+        boot_id: int,
+        graceful: bool = True,
+        history: Iterable[PeerRecord] = (),
+        **kw: object,
+    ) -> Node:
+        """A new daemon for the robot `name` at its address; `history`: the peers it had saved
+        (`Core.take_dirty`), restored before it starts as the daemon's store does."""
         old = self.nodes[name]
         if graceful:
             old.core.stop(self.now)
@@ -103,6 +120,7 @@ class SimNet:
             services=kw.get("services", old.core.services),  # type: ignore[arg-type]
             keyring=old.core.keyring,
         )
+        core.restore(history)
         node = Node(name, old.addr, core)
         self.nodes[name] = node
         core.start(self.now)
@@ -144,6 +162,8 @@ class SimNet:
     def inject(self, name: str, data: bytes, src: Addr) -> None:
         """Deliver raw bytes to one node now (malformed input, foreign traffic)."""
         node = self.nodes[name]
+        if self.on_receive is not None:
+            self.on_receive(node, data, src)
         node.core.receive(data, src, self.now)
         self._pump(node)
 
@@ -163,6 +183,8 @@ class SimNet:
             t, _, action = heapq.heappop(self._queue)
             self.now = max(self.now, t)
             action()
+            if self.after_event is not None:
+                self.after_event()
         self.now = max(self.now, t_end)
 
     def wait_until(self, pred: Callable[[], bool], timeout: float, step: float = 0.01) -> float:
@@ -173,6 +195,11 @@ class SimNet:
                 raise AssertionError(f"condition not met within {timeout} s of virtual time")
             self.run_for(step)
         return self.now - start
+
+    def call_at(self, t: float, action: Callable[[], None]) -> None:
+        """Run `action` at virtual time `t` (not before now): an adversary's delayed or
+        duplicated datagram, say."""
+        self._at(max(t, self.now), action)
 
     # -- views ---------------------------------------------------------------------------
 
@@ -203,6 +230,8 @@ class SimNet:
         core = node.core
         for data, dst in core.datagrams_to_send():
             node.sent.append((self.now, data, dst))
+            if self.on_send is not None:
+                self.on_send(node, data, dst)
             if not node.up and dst is not None:
                 continue
             for target in self._targets(node, dst):
@@ -243,6 +272,8 @@ class SimNet:
                 if not dst.up or self.nodes.get(dst.name) is not dst:
                     return
                 self.delivered += 1
+                if self.on_receive is not None:
+                    self.on_receive(dst, data, addr)
                 dst.core.receive(data, addr, self.now)
                 self._pump(dst)
 
