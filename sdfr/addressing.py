@@ -13,6 +13,9 @@ Conflicts are settled the same way on both robots, so exactly one moves:
   candidate. The rule cannot ping-pong: the keeper never moves and the
   mover never comes back to an address it lost.
 After `max_conflicts` conflicts in a row the next attempts are rate-limited.
+Whatever an outsider keeps answering, the machine's memory is bounded: the last
+CONFLICTS_KEPT conflicts are kept (and all counted), the last LOST_KEPT addresses
+lost, and the candidate sequence needs a fixed bitmap.
 
 Like `sdfr.protocol`, everything takes `now`; randomness comes from an
 injected `random.Random`; the adapter owns the raw socket and the kernel.
@@ -25,11 +28,18 @@ import hashlib
 import ipaddress
 import math
 import random
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from ipaddress import IPv4Address
 
 PREFIX_LEN = 16
+#: Conflicts remembered (for the status and the log); older ones are only counted.
+CONFLICTS_KEPT = 32
+#: Addresses lost to a lower MAC that are skipped when the candidate sequence starts over.
+LOST_KEPT = 64
+#: Addresses in a fleet's sequence: 10.<fleet>.<x>.<y> with x and y in 1..254.
+SPACE = 254 * 254
 
 
 def mac_bytes(mac: str) -> bytes:
@@ -55,25 +65,31 @@ def candidates(fleet: int, mac: str) -> Iterator[IPv4Address]:
     label and two MACs ending alike collide on purpose in tests. The k-th
     after it takes the first two bytes of SHA-256(MAC || k), mapped the same
     way; addresses already in the sequence are skipped. Every robot computes
-    the same sequence for the same MAC.
+    the same sequence for the same MAC. Once all SPACE addresses have come,
+    it starts over: a robot pushed off address after address keeps trying
+    (the addresses seen take a fixed 8 KiB bitmap).
     """
     if not 0 <= fleet <= 255:
         raise ValueError(f"fleet must be 0-255, got {fleet}")
     raw = mac_bytes(mac)
-    seen: set[tuple[int, int]] = set()
-    k = 0
     while True:
-        if k == 0:
-            a, b = raw[4], raw[5]
-        else:
-            digest = hashlib.sha256(raw + k.to_bytes(4, "big")).digest()
-            a, b = digest[0], digest[1]
-        k += 1
-        xy = (_octet(a), _octet(b))
-        if xy in seen:
-            continue
-        seen.add(xy)
-        yield IPv4Address(f"10.{fleet}.{xy[0]}.{xy[1]}")
+        seen = bytearray(8192)  # bit x * 256 + y: 10.<fleet>.x.y came already
+        given = 0
+        k = 0
+        while given < SPACE:
+            if k == 0:
+                a, b = raw[4], raw[5]
+            else:
+                digest = hashlib.sha256(raw + k.to_bytes(4, "big")).digest()
+                a, b = digest[0], digest[1]
+            k += 1
+            x, y = _octet(a), _octet(b)
+            bit = x << 8 | y
+            if seen[bit >> 3] & 1 << (bit & 7):
+                continue
+            seen[bit >> 3] |= 1 << (bit & 7)
+            given += 1
+            yield IPv4Address(f"10.{fleet}.{x}.{y}")
 
 
 class State(enum.Enum):
@@ -157,9 +173,12 @@ class Addressing:
         self.rng = rng
         self.state = State.IDLE
         self.ip: IPv4Address | None = None  # the candidate being probed, announced or held
-        self.conflicts: list[Conflict] = []
+        #: The last CONFLICTS_KEPT conflicts, oldest first; `conflicts_total` counts them all.
+        self.conflicts: deque[Conflict] = deque(maxlen=CONFLICTS_KEPT)
+        self.conflicts_total = 0
         self._candidates = candidates(config.fleet, self.mac)
-        self._lost: set[IPv4Address] = set()
+        #: Addresses lost to a lower MAC, the last LOST_KEPT, oldest first (a dict: ordered).
+        self._lost: dict[IPv4Address, None] = {}
         self._streak = 0
         self._sent = 0
         self._deadline = math.inf
@@ -280,7 +299,10 @@ class Addressing:
                 self._defend(now)
             return
         self._conflict(now, other_mac, kept=False, phase="held")
-        self._lost.add(self.ip)
+        self._lost.pop(self.ip, None)
+        self._lost[self.ip] = None
+        if len(self._lost) > LOST_KEPT:
+            del self._lost[next(iter(self._lost))]
         self._actions.append(Release(self.ip))
         self._next_candidate(now)
 
@@ -292,6 +314,7 @@ class Addressing:
     def _conflict(self, now: float, other_mac: str, *, kept: bool, phase: str) -> None:
         assert self.ip is not None
         self.conflicts.append(Conflict(now, self.ip, other_mac.lower(), kept, phase))
+        self.conflicts_total += 1
         if not kept:
             self._streak += 1
 

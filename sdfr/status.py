@@ -48,7 +48,9 @@ class Addressing:
     mode: str = "manual"
     state: str | None = None
     address: str | None = None
+    #: the last few conflicts; `conflicts_total` counts every one since the layer started
     conflicts: tuple[AddressConflict, ...] = ()
+    conflicts_total: int = 0
 
 
 @dataclass(frozen=True, slots=True)

@@ -329,7 +329,7 @@ class DiscoveryLayer:
             self._last_error,
             self._state_problem,
             core.announce_error,
-            None if machine is None else (machine.state, machine.bound, len(machine.conflicts)),
+            None if machine is None else (machine.state, machine.bound, machine.conflicts_total),
             None if conflict is None else conflict.count,
             self.describe.where,
             self._keyring_stamp,
@@ -663,8 +663,9 @@ class DiscoveryLayer:
             address=str(m.bound) if m.bound else None,
             conflicts=tuple(
                 status.AddressConflict(str(c.ip), c.other_mac, c.kept, c.phase)
-                for c in m.conflicts[-10:]
+                for c in list(m.conflicts)[-10:]
             ),
+            conflicts_total=m.conflicts_total,
         )
 
 
