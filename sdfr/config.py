@@ -281,13 +281,15 @@ _HELP: dict[str, str] = {
     "wifi_secret": "the fleet's WiFi secret (8 characters or more), the same on every robot; "
     "prefer wifi_secret_file: a flag is visible in the process list (default: none)",
     "wifi_secret_file": "file holding the fleet's WiFi secret (make it readable by root only: "
-    "chmod 600; a world-readable file is used with a warning) (default: none)",
+    "chmod 600; a world-readable file is used with a warning). Without key_file it keys the "
+    "fleet's datagrams too: the keyring is seeded with a key derived from it (default: none)",
     "wifi_mode": "ibss (IEEE 802.11 ad-hoc, WPA2-PSK) or mesh (802.11s, SAE) (default ibss)",
     "wifi_freq": "WiFi channel centre frequency in MHz, 2.4 or 5 GHz (default 2412, channel 1)",
     "wifi_country": "regulatory domain, ISO 3166-1 code such as DE (default: leave the system's)",
     "key_file": "file holding the fleet key (`sdfr keys generate FILE`; readable by root only): "
     "every datagram is then signed and checked. It seeds the keyring in STATE_DIR on the "
-    "first start; `sdfr keys` manages the keyring after that (default: none, the fleet is open)",
+    "first start; `sdfr keys` manages the keyring after that (default: none: a key derived "
+    "from the WiFi secret when one is configured, else the fleet is open)",
     "auth": "with a key: accept (send unsigned, accept both), sign (send signed, accept both) or "
     "enforce (send signed, accept signed only) -- the steps of moving a fleet to a key without "
     "a flag day. It seeds a new keyring and can raise a keyring's mode, never lower it: "

@@ -20,7 +20,7 @@ import os
 import secrets
 import stat
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -256,19 +256,31 @@ def save_keyring(
     save(state_dir, StoredKeyring(keyring, kept))
 
 
+@dataclass(frozen=True, slots=True)
+class KeySource:
+    """A key from elsewhere than key_file (the fleet's WiFi secret): made only to seed an
+    empty keyring."""
+
+    #: For the log: where the key comes from.
+    name: str
+    make: Callable[[], bytes]
+
+
 #: How much each mode refuses: a configured mode is applied to a live keyring only upward.
 STRENGTH: Mapping[str, int] = {"accept": 0, "sign": 1, "enforce": 2}
 
 
-def seed_keyring(state_dir: Path, key_file: Path | None, mode: str | None) -> Keyring:
+def seed_keyring(
+    state_dir: Path, key_file: Path | None, mode: str | None, derived: KeySource | None = None
+) -> Keyring:
     """At start: the keyring the daemon runs with.
 
     A keyring with keys is authoritative (a rotation may have replaced the key in `key_file`,
     `sdfr keys mode` may have changed its mode).  `mode` (the configuration's `auth`) seeds a
     new keyring and may raise a live one's mode (accept < sign < enforce), never lower it: a
     weaker configured mode is not applied and a warning says how to lower it live.  An empty
-    keyring takes the key of `key_file`, in `mode` (default enforce).  Neither: the fleet is
-    open.
+    keyring takes the key of `key_file`, else the `derived` one (from the WiFi secret), in
+    `mode` (default enforce).  None of them: the fleet is open.
     """
     stored = load(state_dir)
     ring = stored.keyring
@@ -303,7 +315,7 @@ def seed_keyring(state_dir: Path, key_file: Path | None, mode: str | None) -> Ke
                 ring.mode,
             )
         return stored.keyring
-    if key_file is None:
+    if key_file is None and derived is None:
         if mode is not None:
             log.warning(
                 "auth = %s in the configuration, but this robot has no key (no key_file, and "
@@ -312,11 +324,18 @@ def seed_keyring(state_dir: Path, key_file: Path | None, mode: str | None) -> Ke
                 keyring_path(state_dir),
             )
         return OPEN
-    key = read_key_file(key_file)
+    if key_file is not None:
+        key, source = read_key_file(key_file), str(key_file)
+    else:
+        assert derived is not None
+        key, source = derived.make(), derived.name
+        if len(key) != KEY_BYTES:
+            raise ConfigError(f"{source}: made a key of {len(key)} bytes, not {KEY_BYTES}")
     new_mode: Mode = mode if mode is not None else "enforce"
     stored = StoredKeyring(Keyring.of([key], mode=new_mode), {key_id(key): time.time()})
     save(state_dir, stored)
-    log.info("keyring: key %s from %s, mode %s", key_id(key), key_file, new_mode)
+    how = "from" if key_file is not None else "derived from"
+    log.info("keyring: key %s %s %s, mode %s", key_id(key), how, source, new_mode)
     return stored.keyring
 
 

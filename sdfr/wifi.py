@@ -13,11 +13,19 @@ Derivation (the same on every robot of a fleet, so nothing but the secret is sha
   lowercase hex digits. In IBSS mode it is the raw WPA2 PSK (``psk=<hex>``, no further
   hashing by wpa_supplicant); in mesh mode the 64 hex digits are the SAE password. The
   same secret gives a different key in another fleet.
+- datagram key (`datagram_key`, used when no ``key_file`` is configured): ``HKDF-SHA256``
+  (RFC 5869) with the key above as input keying material (its 32 bytes), salt
+  ``"sdfr-fleet-<fleet id>"`` and info ``"SDfR datagram key v1"``, 32 bytes: one secret
+  protects the link and discovery. The input is the stretched key, never the bare secret, so a
+  captured sealed datagram lets nobody test guesses of the secret faster than a captured WPA2
+  handshake does; and the datagram key (stored in every robot's keyring) does not give the
+  WiFi key.
 """
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 import logging
 import os
 import shlex
@@ -32,11 +40,15 @@ from pathlib import Path
 
 from sdfr.config import WIFI_SECRET_MIN, Config
 from sdfr.errors import ConfigError, SdfrError
+from sdfr.keystore import KeySource
 
 log = logging.getLogger("sdfr.wifi")
 
 SSID_PREFIX = "sdfr-fleet-"
 KDF_ITERATIONS = 100_000
+#: HKDF's info for the datagram key: a key for nothing else (RFC 5869 section 3.2).
+DATAGRAM_KEY_INFO = b"SDfR datagram key v1"
+_HASH_LEN = 32  # SHA-256
 MASK = "*" * 16
 _SYS_NET = Path("/sys/class/net")
 
@@ -83,6 +95,51 @@ def pbkdf2_sha256(password: bytes, salt: bytes, rounds: int) -> bytes:
         u = prf(u)
         acc ^= int.from_bytes(u, "big")
     return acc.to_bytes(32, "big")
+
+
+def hkdf_extract(salt: bytes, ikm: bytes) -> bytes:
+    """HKDF-Extract with SHA-256 (RFC 5869 section 2.2): the pseudorandom key; no salt is
+    a string of zeros."""
+    return hmac.new(salt or bytes(_HASH_LEN), ikm, hashlib.sha256).digest()
+
+
+def hkdf_expand(prk: bytes, info: bytes, length: int) -> bytes:
+    """HKDF-Expand with SHA-256 (RFC 5869 section 2.3): `length` bytes, 1 to 255 * 32."""
+    if not 0 < length <= 255 * _HASH_LEN:
+        raise ValueError(f"HKDF-SHA256 gives 1 to {255 * _HASH_LEN} bytes, not {length}")
+    out = b""
+    block = b""
+    for counter in range(1, -(-length // _HASH_LEN) + 1):
+        block = hmac.new(prk, block + info + bytes((counter,)), hashlib.sha256).digest()
+        out += block
+    return out[:length]
+
+
+def hkdf_sha256(ikm: bytes, salt: bytes, info: bytes, length: int) -> bytes:
+    """HKDF-SHA256 (RFC 5869): extract, then expand."""
+    return hkdf_expand(hkdf_extract(salt, ikm), info, length)
+
+
+def datagram_key(secret: str, fleet: int) -> bytes:
+    """The fleet's datagram key from its WiFi secret (see the module's docstring)."""
+    stretched = bytes.fromhex(derive_key(secret, fleet))
+    return hkdf_sha256(stretched, ssid_for(fleet).encode("ascii"), DATAGRAM_KEY_INFO, _HASH_LEN)
+
+
+def datagram_key_source(cfg: Config) -> KeySource | None:
+    """Where a fleet with a WiFi secret and no key_file gets its datagram key: derived from
+    the secret when the keyring is seeded (the secret is read then, and only then); None
+    without a secret."""
+    if cfg.wifi_secret is None and cfg.wifi_secret_file is None:
+        return None
+    where = "wifi_secret" if cfg.wifi_secret_file is None else str(cfg.wifi_secret_file)
+
+    def make() -> bytes:
+        secret, _ = load_secret(cfg)  # (its warnings are setup's to give)
+        assert secret is not None
+        return datagram_key(secret, cfg.fleet)
+
+    return KeySource(f"the WiFi secret ({where})", make)
 
 
 @dataclass(frozen=True, slots=True)

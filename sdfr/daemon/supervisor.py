@@ -538,7 +538,9 @@ def main(argv: list[str] | None = None) -> int:
                 log.info("leases ran out while sdfrd was down: withdrew %s", ", ".join(gone))
         finally:
             store.close()
-        keyring = keystore.seed_keyring(cfg.state_dir, cfg.key_file, cfg.auth)
+        keyring = keystore.seed_keyring(
+            cfg.state_dir, cfg.key_file, cfg.auth, wifi.datagram_key_source(cfg)
+        )
         log.info(
             "fleet %d: %s",
             cfg.fleet,

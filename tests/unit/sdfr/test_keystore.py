@@ -15,6 +15,7 @@ from sdfr.auth import OPEN, Keyring
 from sdfr.daemon.supervisor import lock_state_dir
 from sdfr.errors import ConfigError, SdfrError
 from sdfr.keystore import KeyringError, StoredKeyring
+from tests.support.logged import logged
 
 K1 = bytes(range(32))
 K2 = bytes(range(1, 33))
@@ -151,19 +152,19 @@ def test_seed_keeps_a_keyring_a_rotation_changed(
     ("live", "configured"), [("enforce", "sign"), ("enforce", "accept"), ("sign", "accept")]
 )
 def test_a_configured_mode_never_weakens_a_live_keyring(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture, live: str, configured: str
+    tmp_path: Path, live: str, configured: str
 ) -> None:
     """`sdfr keys mode enforce` on the running daemon, then a restart with an older `auth` in
     the config: the keyring keeps its mode, and the daemon says why and how to change it."""
     state = tmp_path / "state"
     keystore.save(state, StoredKeyring(Keyring.of([K1], mode=live)))
     before = keystore.keyring_path(state).read_bytes()
-    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+    with logged("sdfr.keystore", level=logging.WARNING) as said:
         ring = keystore.seed_keyring(state, key_file(tmp_path, K1), configured)
     assert ring.mode == live
     assert keystore.load_keyring(state).mode == live
     assert keystore.keyring_path(state).read_bytes() == before  # not rewritten
-    [warning] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    [warning] = said
     assert f"auth = {configured}" in warning and f"mode {live}" in warning
     assert f"sdfr keys mode {configured}" in warning
 
@@ -180,12 +181,11 @@ def test_a_stronger_configured_mode_raises_the_keyring(
     assert keystore.load_keyring(state).mode == configured
 
 
-def test_a_configured_mode_without_any_key_is_said_to_leave_the_fleet_open(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+def test_a_configured_mode_without_any_key_is_said_to_leave_the_fleet_open(tmp_path: Path) -> None:
+    with logged("sdfr.keystore", level=logging.WARNING) as said:
         assert keystore.seed_keyring(tmp_path, None, "enforce") == OPEN
-    assert "auth = enforce" in caplog.text and "open" in caplog.text
+    [warning] = said
+    assert "auth = enforce" in warning and "the fleet is open" in warning
     assert not keystore.keyring_path(tmp_path).exists()
 
 
