@@ -13,13 +13,29 @@ as the victim of a reflection.
 - ``flood --to IP --count N [--fleet F] [--net A.B] [--rate R --seconds S]``: N Alives of N
   fake robots, each from its own forged address in A.B.100.1 - A.B.249.250 (the lab's /16,
   away from its robots); with --rate, R a second for S seconds, cycling through them.
-- ``listen --port P --timeout S``: prints JSON ``{"datagrams": n, "bytes": b}`` received.
+- ``listen --port P --timeout S``: prints JSON ``{"datagrams": n, "bytes": b, "sources":
+  {ip: [n, b]}}`` received (in all, and by source address).
+
+With ears: on a medium where every frame reaches every port (a radio; `tests.support.attacks.hub`
+makes the lab's bridge one), the outsider also hears the robots' unicasts to each other:
+
+- ``record --out FILE [--iface IF] [--seconds S]``: every UDP datagram to or from port 1900
+  on the interface (the robots' multicasts and unicasts) as JSON lines ``{"t", "src", "dst",
+  "hex"}`` (``src``/``dst`` are ``ip:port``), until SIGTERM or S seconds; prints ``ready`` once
+  it hears.
+- ``replay --plan FILE``: sends datagrams on a timeline, one JSON line each ``{"at": seconds
+  from the start, "hex", "to": "ip[:port]", "spoof": "ip[:port]" or null}``; prints one JSON
+  line ``{"sent": i, "t": unix time}`` per datagram.
+- ``relay --sender IP --to IP[:PORT] [--spoof IP[:PORT]] [--seconds S]``: sends each datagram
+  heard from IP on to ``--to`` (from its own address, or from ``--spoof``) as it comes, for S
+  seconds; prints ``ready``, then JSON ``{"relayed": n}``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import socket
 import struct
 import sys
@@ -144,10 +160,128 @@ def cmd_listen(args: argparse.Namespace) -> int:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("", args.port))
     count = total = 0
-    for data, _ in _received(sock, args.timeout):
+    sources: dict[str, list[int]] = {}
+    for data, src in _received(sock, args.timeout):
         count += 1
         total += len(data)
-    print(json.dumps({"datagrams": count, "bytes": total}), flush=True)
+        seen = sources.setdefault(src[0], [0, 0])
+        seen[0] += 1
+        seen[1] += len(data)
+    print(json.dumps({"datagrams": count, "bytes": total, "sources": sources}), flush=True)
+    return 0
+
+
+# -- ears: a packet socket hears every frame that reaches the interface --------------------
+
+ETH_P_IP = 0x0800
+PACKET_OUTGOING = 4  # sll_pkttype of a frame this host sent
+SOL_PACKET = 263
+PACKET_ADD_MEMBERSHIP = 1
+PACKET_MR_PROMISC = 1
+
+
+def _ears(iface: str) -> socket.socket:
+    """A packet socket on `iface` in promiscuous mode: frames for other hosts too."""
+    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_IP))
+    sock.bind((iface, ETH_P_IP))
+    mreq = struct.pack("iHH8s", socket.if_nametoindex(iface), PACKET_MR_PROMISC, 0, b"")
+    sock.setsockopt(SOL_PACKET, PACKET_ADD_MEMBERSHIP, mreq)
+    return sock
+
+
+def udp_of(frame: bytes) -> tuple[tuple[str, int], tuple[str, int], bytes] | None:
+    """(source, destination, payload) of an Ethernet frame carrying a whole IPv4 UDP
+    datagram; None for anything else."""
+    if len(frame) < 14 + 20 + 8 or frame[12:14] != b"\x08\x00":
+        return None
+    ip = frame[14:]
+    ihl = (ip[0] & 0x0F) * 4
+    total = struct.unpack("!H", ip[2:4])[0]
+    frag = struct.unpack("!H", ip[6:8])[0]
+    if ip[0] >> 4 != 4 or ip[9] != socket.IPPROTO_UDP or frag & 0x3FFF or total > len(ip):
+        return None
+    udp = ip[ihl:total]
+    sport, dport, length = struct.unpack("!HHH", udp[:6])
+    src, dst = socket.inet_ntoa(ip[12:16]), socket.inet_ntoa(ip[16:20])
+    return (src, sport), (dst, dport), udp[8:length]
+
+
+class _Stop:
+    """SIGTERM/SIGINT end a long-running command cleanly (its output flushed)."""
+
+    def __init__(self) -> None:
+        self.asked = False
+        signal.signal(signal.SIGTERM, self._ask)
+        signal.signal(signal.SIGINT, self._ask)
+
+    def _ask(self, *_: object) -> None:
+        self.asked = True
+
+
+def _heard(
+    sock: socket.socket, seconds: float, stop: _Stop
+) -> Iterator[tuple[tuple[str, int], tuple[str, int], bytes]]:
+    """UDP datagrams to or from the SDfR port that others sent, until `seconds` or a stop."""
+    deadline = time.monotonic() + seconds
+    sock.settimeout(0.1)
+    while not stop.asked and time.monotonic() < deadline:
+        try:
+            frame, addr = sock.recvfrom(65535)
+        except (TimeoutError, InterruptedError):
+            continue
+        if addr[2] == PACKET_OUTGOING:
+            continue
+        got = udp_of(frame)
+        if got is not None and PORT in (got[0][1], got[1][1]):
+            yield got
+
+
+def _text(addr: tuple[str, int]) -> str:
+    return f"{addr[0]}:{addr[1]}"
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    stop = _Stop()
+    sock = _ears(args.iface)
+    print("ready", flush=True)
+    with open(args.out, "w") as out:
+        for src, dst, data in _heard(sock, args.seconds, stop):
+            line = {"t": time.time(), "src": _text(src), "dst": _text(dst), "hex": data.hex()}
+            out.write(json.dumps(line) + "\n")
+            out.flush()
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    with open(args.plan) as f:
+        plan = [json.loads(line) for line in f if line.strip()]
+    sender = Sender()
+    start = time.monotonic()
+    for i, step in enumerate(plan):
+        wait = start + float(step["at"]) - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        spoof = _addr(step["spoof"]) if step.get("spoof") else None
+        sender.send(bytes.fromhex(step["hex"]), _addr(step["to"]), spoof)
+        print(json.dumps({"sent": i, "t": time.time()}), flush=True)
+    return 0
+
+
+def cmd_relay(args: argparse.Namespace) -> int:
+    stop = _Stop()
+    sock = _ears(args.iface)
+    sender = Sender()
+    dst = _addr(args.to)
+    spoof = _addr(args.spoof) if args.spoof else None
+    if spoof is not None and spoof[0] == args.sender:
+        raise SystemExit("relay: --spoof must not be the sender (it would hear itself)")
+    print("ready", flush=True)
+    relayed = 0
+    for src, _, data in _heard(sock, args.seconds, stop):
+        if src[0] == args.sender:
+            sender.send(data, dst, spoof)
+            relayed += 1
+    print(json.dumps({"relayed": relayed}), flush=True)
     return 0
 
 
@@ -179,6 +313,21 @@ def main(argv: list[str] | None = None) -> int:
     listen.add_argument("--port", type=int, default=PORT)
     listen.add_argument("--timeout", type=float, default=3.0)
     listen.set_defaults(fn=cmd_listen)
+    r = sub.add_parser("record")
+    r.add_argument("--out", required=True)
+    r.add_argument("--iface", default="eth0")
+    r.add_argument("--seconds", type=float, default=600.0)
+    r.set_defaults(fn=cmd_record)
+    p_replay = sub.add_parser("replay")
+    p_replay.add_argument("--plan", required=True)
+    p_replay.set_defaults(fn=cmd_replay)
+    relay = sub.add_parser("relay")
+    relay.add_argument("--sender", required=True)
+    relay.add_argument("--to", required=True)
+    relay.add_argument("--spoof")
+    relay.add_argument("--iface", default="eth0")
+    relay.add_argument("--seconds", type=float, default=10.0)
+    relay.set_defaults(fn=cmd_relay)
     args = p.parse_args(argv)
     code: int = args.fn(args)
     return code
