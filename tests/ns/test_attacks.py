@@ -13,7 +13,7 @@ counters name it.
 - Keyed fleet (`keyed`: r1-r3 with one fleet key; the outsider records ~12 s of their traffic,
   then r3 is killed): replays of dead r3's multicasts to a robot started after it died, and to
   a robot after its restart; r3's unicast replies to r2 replayed at r1; r1's own beacon sent
-  back to it from elsewhere.
+  back to it from elsewhere; a relay between r1 and r2 when they cannot hear each other.
 - Open fleet (`open_fleet`: r1-r3 without a key): amplification toward a victim V (a namespace
   of the lab, so that what is sent to it goes on the wire) whose address the outsider forges:
   beacons claiming V, pings from V, plain SSDP searches from V and from outside the fleet's
@@ -26,6 +26,7 @@ is MISS_LIMIT beacons.
 
 from __future__ import annotations
 
+import json
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -307,6 +308,35 @@ def test_a_robots_own_beacon_sent_back_from_elsewhere_leaves_no_lasting_warning(
         DEAD_AFTER + 2 * TAIL,
     )
     assert took <= DEAD_AFTER + 2 * TAIL
+
+
+def test_a_relay_between_robots_that_cannot_hear_each_other_moves_neither(keyed: Fleet) -> None:
+    """A wormhole: r1 and r2 out of each other's range, the outsider relays all each sends to
+    the other, from its own address.  A robot's address is the one it signs: r1 must not list
+    r2 at the outsider's address (before: r1 challenged it there, the outsider relayed the
+    challenge to r2, which answers any ping, and its answer back)."""
+    lab, x9 = keyed.lab, keyed.outsider
+    r1, r2 = keyed.ip("r1"), keyed.ip("r2")
+    lab.set_pair_quality("r1", "r2", loss=100.0)
+    try:
+        poll("r1 drops r2", lambda: "r2" not in listing(lab, "r1"), DEAD_AFTER + 2.0)
+        before = rejects(lab, "r1")
+        seconds = 6 * BEACON
+        with Tap(lab, ["r1"]) as tap, Sightings(lab, "r1", listed_at("r2")) as seen:
+            relays = [x9.relay(r2, r1, seconds=seconds), x9.relay(r1, r2, seconds=seconds)]
+            outs = [proc.communicate(timeout=seconds + 10)[0] for proc in relays]
+            watch(TAIL)
+    finally:
+        lab.set_pair_quality("r1", "r2", loss=None)
+    relayed = json.loads(outs[0].strip().splitlines()[-1])["relayed"]
+    arrived = len(tap.between("r1", x9.ip, r1))
+    assert relayed > 0 and arrived >= relayed, f"{arrived} of {relayed} relayed reached r1"
+    at_x9 = seen.when(lambda a: a == x9.ip)
+    never(at_x9, f"r1 listed r2 at the outsider's address {x9.ip} for "
+                 f"{seen.seconds(lambda a: a == x9.ip):.1f} s of a {seconds + TAIL:g} s relay "
+                 f"of {relayed} of r2's datagrams (r1 and r2 cannot hear each other)")  # fmt: skip
+    counted = grown(before, rejects(lab, "r1"))
+    assert counted["relayed"] >= 1, f"rejects grown on r1: {dict(counted)}"
 
 
 # -- without a key: amplification -------------------------------------------------------------
