@@ -484,7 +484,17 @@ def _show_keys(answer: dict[str, Any]) -> str:
         )
         for k in answer["keys"]
     ]
-    return head + "\n" + table(["KEY", "PRIMARY", "INSTALLED", "RECEIVED"], rows)
+    text = head + "\n" + table(["KEY", "PRIMARY", "INSTALLED", "RECEIVED"], rows)
+    unknown = [
+        (u["id"], u["address"], u["count"], time.strftime("%X", time.localtime(u["last_seen"])))
+        for u in answer.get("unknown") or []
+    ]
+    if unknown:
+        text += (
+            "\nkeys not in the keyring, datagrams dropped (a robot left out of a rotation?):\n"
+            + table(["KEY", "FROM", "DATAGRAMS", "LAST"], unknown)
+        )
+    return text
 
 
 # -- commands ----------------------------------------------------------------------------------

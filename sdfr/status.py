@@ -54,6 +54,18 @@ class Addressing:
 
 
 @dataclass(frozen=True, slots=True)
+class UnknownKey:
+    """Datagrams sealed with a key id the keyring does not hold, refused lately."""
+
+    id: str
+    #: the source address of the latest
+    address: str
+    count: int
+    first_seen: float
+    last_seen: float
+
+
+@dataclass(frozen=True, slots=True)
 class Auth:
     #: open (no key), accept, sign or enforce
     mode: str = "open"
@@ -62,6 +74,8 @@ class Auth:
     #: datagrams verified, by key id
     received: dict[str, int] = field(default_factory=dict)
     ssdp_interop: bool = True
+    #: key ids of refused seals heard within the miss window, the latest first
+    unknown: tuple[UnknownKey, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

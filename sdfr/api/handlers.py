@@ -396,6 +396,13 @@ def health_warnings(status: DiscoveryStatus, now: float | None = None) -> list[s
             f"(boot {conflict.boot_id}, {ago:.0f} s ago, {conflict.count} datagrams); give "
             "each daemon its own --robot-id"
         )
+    for seen in status.auth.unknown:
+        ago = max(0.0, (time.time() if now is None else now) - seen.last_seen)
+        out.append(
+            f"datagrams sealed with key {seen.id}, which the keyring does not hold, are dropped: "
+            f"{seen.count} datagrams from {seen.address}, the last {ago:.0f} s ago (a robot left "
+            "out of a key rotation?); give it the fleet's key, or `sdfr keys install` its key"
+        )
     mode = status.auth.mode
     if mode in ("accept", "sign"):
         out.append(
@@ -460,6 +467,17 @@ def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, object]:
     ring = stored.keyring
     status = state.discovery().status
     received = {} if status is None else status.auth.received
+    unknown = [
+        {
+            "id": seen.id,
+            "address": seen.address,
+            "count": seen.count,
+            "first_seen": seen.first_seen,
+            "last_seen": seen.last_seen,
+        }
+        for seen in (() if status is None else status.auth.unknown)
+        if seen.id not in ring.keys  # (installed since)
+    ]
     return {
         "mode": ring.mode if ring.keyed else "open",
         "primary": ring.primary,
@@ -474,6 +492,7 @@ def _keys_json(state: ApiState, stored: StoredKeyring) -> dict[str, object]:
             }
             for kid in sorted(ring.keys)
         ],
+        **({"unknown": unknown} if unknown else {}),
     }
 
 

@@ -195,12 +195,28 @@ class KeyInfo(Struct):
     ]
 
 
+class UnknownKeyInfo(Struct):
+    id: Annotated[str, Meta(description="8 hex characters, as the refused seals name it")]
+    address: Annotated[str, Meta(description="Where the latest came from")]
+    count: Annotated[int, Meta(description="Datagrams refused since first_seen")]
+    first_seen: float
+    last_seen: float
+
+
 class Keys(Struct):
     mode: Literal["open", "accept", "sign", "enforce"]
     primary: Annotated[str | None, Meta(description="The key that signs")]
     keyed: bool
     ssdp_interop: bool
     keys: list[KeyInfo]
+    unknown: Annotated[
+        list[UnknownKeyInfo],
+        Meta(
+            description="Key ids of datagrams refused lately (within the miss window) because "
+            "the keyring does not hold them: a robot left out of a key rotation; left out "
+            "when there are none"
+        ),
+    ] = []
 
 
 class KeyInstall(Struct, forbid_unknown_fields=True):

@@ -24,10 +24,11 @@ from ipaddress import IPv4Address
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sdfr import events, keystore, netif, status
+from sdfr import auth, events, keystore, netif, status
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
 from sdfr.daemon import logs, notify
 from sdfr.daemon.describe import DescribeServer
+from sdfr.daemon.unknownkeys import UnknownKeys
 from sdfr.errors import SdfrError
 from sdfr.model import PeerRecord
 from sdfr.protocol import Core
@@ -97,6 +98,9 @@ class DiscoveryLayer:
         self._errors: deque[float] = deque()
         self._last_error: tuple[float, str] | None = None
         self._conflict_logged = 0  # the conflict's datagram count when last logged
+        #: Datagrams sealed with keys the keyring does not hold, for as long as a peer heard
+        #: would stay listed (a robot left out of a key rotation is said, not just counted).
+        self.unknown_keys = UnknownKeys(cfg.miss_limit * cfg.beacon_interval)
         self.address = netif.ipv4(self.iface) or ""
         self.core = Core(
             cfg.core_config(),
@@ -333,6 +337,7 @@ class DiscoveryLayer:
             None if conflict is None else conflict.count,
             self.describe.where,
             self._keyring_stamp,
+            self.unknown_keys.kids(time.monotonic()),
         )
 
     def _guard(self, what: str, duty: Callable[[], None]) -> None:
@@ -366,7 +371,10 @@ class DiscoveryLayer:
             if addr[0] == self.address and self.addressing is not None:
                 # Another robot sends from our address: a conflict, typically after a merge.
                 self.addressing.suspect(now)
+            unknown = self.core.counters.rejects["unknown-key"]
             self.core.receive(data, (addr[0], addr[1]), now)
+            if self.core.counters.rejects["unknown-key"] != unknown:
+                self._unknown_key(data, addr[0], now)
         if self.addressing is not None and self.core.arrivals != self._arrivals:
             self._arrivals = self.core.arrivals
             self.addressing.refresh(now)
@@ -545,6 +553,25 @@ class DiscoveryLayer:
                 c.count,
             )
 
+    def _unknown_key(self, data: bytes, address: str, now: float) -> None:
+        """`data` from `address` was refused: sealed with a key the keyring does not hold.
+        Noted, and said in the log once a minute per key id."""
+        seal = auth.seal_of(data)
+        if seal is None:
+            return
+        seen = self.unknown_keys.saw(seal.kid, address, now)
+        if seen is not None:
+            log.warning(
+                "datagrams sealed with key %s, which this robot's keyring does not hold, come "
+                "from %s (%d in %.0f s), and are dropped: a robot left out of a key rotation? "
+                "Give it the fleet's key, or `sdfr keys install` its key here; `sdfr keys "
+                "list` shows the keys seen",
+                seen.kid,
+                address,
+                seen.count,
+                now - seen.first_seen,
+            )
+
     def _send_status(self, record: dict[str, object] | None = None) -> None:
         """Our status (`record`, else made now) to the API layer: a datagram, no disk."""
         if record is None:
@@ -623,12 +650,19 @@ class DiscoveryLayer:
 
     def _auth_status(self) -> status.Auth:
         ring = self.core.keyring
+        offset = self.clock_offset
         return status.Auth(
             mode=ring.mode if ring.keyed else "open",
             primary=ring.primary,
             keys=tuple(sorted(ring.keys)),
             received=dict(self.core.counters.verified),
             ssdp_interop=self.core.ssdp_interop,
+            unknown=tuple(
+                status.UnknownKey(
+                    s.kid, s.address, s.count, s.first_seen + offset, s.last_seen + offset
+                )
+                for s in self.unknown_keys.recent(time.monotonic())
+            ),
         )
 
     def _conflict_status(self) -> status.Conflict | None:
