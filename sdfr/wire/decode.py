@@ -1,6 +1,7 @@
 """Decoding: the bytes of one datagram to a message, or a `Reject` saying why not.  Never
 raises: a bad datagram is a value."""
 
+import re
 import zlib
 from collections.abc import Sequence
 from itertools import pairwise
@@ -71,6 +72,8 @@ def decode(data: bytes, *, fleet: int | None = None, group: str | None = None) -
         return Reject("bad-value", f"internal error: {type(exc).__name__}: {exc}")
 
 
+#: Control characters (C0 but HTAB, DEL, C1) and Unicode's line and paragraph separators.
+_CONTROL = re.compile("[\x00-\x08\x0a-\x1f\x7f-\x9f\u2028\u2029]")
 _FLEET_NEEDLE = b"\nX-SDFR-FLEET:"
 _COMPACT_NEEDLE = b"\nX-SDFR: "
 _COMPACT_METHOD = {"discovery": "M-SEARCH", "response": "200", "alive": "NOTIFY",
@@ -133,11 +136,18 @@ def _decode(data: bytes, fleet: int | None, group: str | None) -> Message | Reje
     headers: dict[str, str] = {}
     setdefault = headers.setdefault
     for i in range(1, len(lines)):
-        name, colon, value = lines[i].partition(":")
+        line = lines[i]
+        if line[-1:] == "\r":
+            line = line[:-1]
+        if _CONTROL.search(line):
+            # (HTTP's rule: no control character in a field but HTAB.  Text from here reaches
+            # the history map, the API and logs: no forged lines, no terminal escapes.)
+            raise _Rejected("bad-value", f"control character in {line[:80]!r}")
+        name, colon, value = line.partition(":")
         key = name.strip().upper()
         if not colon or not key or " " in key or "\t" in key:
             raise _Rejected("bad-header", f"not a header line: {lines[i][:80]!r}")
-        value = value.strip()
+        value = value.strip(" \t")
         if setdefault(key, value) != value:
             raise _Rejected("bad-header", f"{key} given twice with different values")
     if "X-SDFR" in headers:
@@ -249,7 +259,7 @@ def _decode_compact(
 
 def _compact_location(headers: dict[str, str]) -> str:
     location = headers.get("LOCATION", "")
-    if len(location) > MAX_LOCATION or ("LOCATION" in headers and not location):
+    if len(location) > MAX_LOCATION or ("LOCATION" in headers and not location) or "\t" in location:
         raise _Rejected("bad-value", f"LOCATION must be 1..{MAX_LOCATION} characters")
     return location
 
@@ -436,7 +446,7 @@ def _check_usn(headers: dict[str, str], origin: Origin) -> None:
 
 def _decode_location(headers: dict[str, str]) -> str:
     location = _need(headers, "LOCATION")
-    if not location or len(location) > MAX_LOCATION:
+    if not location or len(location) > MAX_LOCATION or "\t" in location:
         raise _Rejected("bad-value", f"LOCATION must be 1..{MAX_LOCATION} characters")
     return location
 
