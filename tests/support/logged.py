@@ -6,6 +6,8 @@ import contextlib
 import logging
 from collections.abc import Iterator
 
+import pytest
+
 
 class _Said(logging.Handler):
     def __init__(self, level: int) -> None:
@@ -36,3 +38,14 @@ def logged(*names: str, level: int = logging.INFO) -> Iterator[list[str]]:
         for logger, before in zip(loggers, levels, strict=True):
             logger.removeHandler(said)
             logger.setLevel(before)
+
+
+def keep_daemon_logging(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Let a test run sdfrd's supervisor.main in this process without its log set-up (its
+    repeat filter, its formats, the root level): that is for a process of its own, and left on
+    pytest's handlers it would change later tests."""
+    from sdfr.daemon import supervisor
+
+    monkeypatch.setattr(supervisor.logs, "setup", lambda *a, **kw: None)
+    monkeypatch.setattr(supervisor.logs, "share_with_threads", lambda: None)
+    monkeypatch.setattr(logging.getLogger(), "level", logging.getLogger().level)

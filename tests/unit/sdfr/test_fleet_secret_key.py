@@ -4,7 +4,6 @@ datagrams with a key derived from that secret (HKDF-SHA256, RFC 5869)."""
 from __future__ import annotations
 
 import base64
-import logging
 import stat
 import subprocess
 import sys
@@ -16,7 +15,7 @@ from sdfr import auth, keystore, wifi
 from sdfr.auth import Keyring
 from sdfr.daemon import supervisor
 from sdfr.keystore import KeySource, StoredKeyring
-from tests.support.logged import logged
+from tests.support.logged import keep_daemon_logging, logged
 
 SECRET = "correct horse battery staple"
 K1 = bytes(range(32))
@@ -144,14 +143,6 @@ def test_a_key_source_seeds_only_an_empty_keyring(tmp_path: Path) -> None:
     assert ring == Keyring.of([bytes(range(1, 33))], mode="sign") and made == [1]
 
 
-def _keep_logging(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The daemon's log set-up (its repeat filter, its formats, the root level) is for a
-    process of its own: kept off pytest's handlers, where it would change later tests."""
-    monkeypatch.setattr(supervisor.logs, "setup", lambda *a, **kw: None)
-    monkeypatch.setattr(supervisor.logs, "share_with_threads", lambda: None)
-    monkeypatch.setattr(logging.getLogger(), "level", logging.getLogger().level)
-
-
 def _start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, state: str, *extra: str) -> Keyring:
     """sdfrd's start on `lo` (not wireless: the radio is left alone) until its layers would
     run; the keyring it leaves in its state directory."""
@@ -161,7 +152,7 @@ def _start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, state: str, *extra: 
 
     monkeypatch.setattr(wifi, "apply", no_radio)
     monkeypatch.setattr(supervisor.Supervisor, "run", lambda self: 0)
-    _keep_logging(monkeypatch)
+    keep_daemon_logging(monkeypatch)
     state_dir = tmp_path / state
     argv = ["--iface", "lo", "--robot-id", state, "--fleet", "7", "--state-dir", str(state_dir)]
     assert supervisor.main([*argv, *extra]) == 0
@@ -233,7 +224,7 @@ def test_without_any_secret_the_fleet_stays_open(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(supervisor.Supervisor, "run", lambda self: 0)
-    _keep_logging(monkeypatch)
+    keep_daemon_logging(monkeypatch)
     state_dir = tmp_path / "r1"
     argv = ["--iface", "lo", "--robot-id", "r1", "--state-dir", str(state_dir)]
     assert supervisor.main(argv) == 0

@@ -12,10 +12,11 @@ import pytest
 
 from sdfr import auth, keystore
 from sdfr.auth import OPEN, Keyring
+from sdfr.daemon import supervisor
 from sdfr.daemon.supervisor import lock_state_dir
 from sdfr.errors import ConfigError, SdfrError
 from sdfr.keystore import KeyringError, StoredKeyring
-from tests.support.logged import logged
+from tests.support.logged import keep_daemon_logging, logged
 
 K1 = bytes(range(32))
 K2 = bytes(range(1, 33))
@@ -167,6 +168,26 @@ def test_a_configured_mode_never_weakens_a_live_keyring(
     [warning] = said
     assert f"auth = {configured}" in warning and f"mode {live}" in warning
     assert f"sdfr keys mode {configured}" in warning
+
+
+def test_sdfrd_started_with_an_older_auth_keeps_enforce_and_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The whole start: a robot put in enforce live, restarted with auth = "accept" (left from
+    the migration) in its configuration file."""
+    state = tmp_path / "state"
+    keystore.save(state, StoredKeyring(Keyring.of([K1], mode="accept")))
+    keystore.save(state, keystore.set_mode(keystore.load(state), "enforce"))  # sdfr keys mode
+    config = tmp_path / "sdfrd.toml"
+    config.write_text(f'[sdfrd]\nfleet = 7\nstate_dir = "{state}"\nauth = "accept"\n')
+    keep_daemon_logging(monkeypatch)
+    monkeypatch.setattr(supervisor.Supervisor, "run", lambda self: 0)
+    with logged("sdfr", "sdfrd") as said:
+        assert supervisor.main(["--config", str(config), "--iface", "lo", "--robot-id", "r1"]) == 0
+    assert keystore.load_keyring(state).mode == "enforce"
+    [warning] = [line for line in said if "auth = accept" in line]
+    assert "mode enforce" in warning and "sdfr keys mode accept" in warning
+    assert any("keyed (enforce, signing with" in line for line in said)
 
 
 @pytest.mark.parametrize(
