@@ -253,6 +253,40 @@ def test_key_rotation_drops_no_peer(
     poll("unknown-key counted", lambda: rejects(lab, "r1").get("unknown-key", 0) > before, 3.0)
 
 
+def test_a_robot_left_out_of_a_rotation_is_named_until_it_has_the_key(
+    fleet_factory: Callable[..., Lab], keys: dict[str, Path]
+) -> None:
+    """r3 misses the rotation: r1 and r2 move to k2 and drop k1, r3 goes on with k1 alone.
+    r1 cannot hear r3 any more, and says so by name; once r3 has the key, all clear."""
+    lab = lab_with_outsider(fleet_factory, key_file=keys["k1"])
+    k1, k2 = kid(keys["k1"]), kid(keys["k2"])
+    r3 = lab.robot("r3").ip
+    for r in ("r1", "r2"):
+        cli_keys(lab, r, "install", str(keys["k2"]))
+        cli_keys(lab, r, "use", k2)
+        cli_keys(lab, r, "remove", k1)
+
+    def named(robot: str) -> bool:
+        health = lab.client(robot).health()
+        return health["status"] == "warning" and any(
+            k1 in w and r3 in w for w in health["warnings"]
+        )
+
+    poll("r1 names k1 and r3's address", lambda: named("r1"), 5 * BEACON)
+    listed = cli_keys(lab, "r1", "list")
+    assert "not in the keyring" in listed
+    [row] = [line for line in listed.splitlines() if line.startswith(k1)]
+    assert r3 in row
+    log = lab.robot("r1").log
+    poll("and the log", lambda: f"sealed with key {k1}" in log.read_text(), 3.0)
+    # r3 gets the new key: the warning goes after the miss window (3 beacons).
+    cli_keys(lab, "r3", "install", str(keys["k2"]))
+    cli_keys(lab, "r3", "use", k2)
+    poll("all clear on r1", lambda: lab.client("r1").health()["status"] == "ok", 6 * BEACON)
+    assert "not in the keyring" not in cli_keys(lab, "r1", "list")
+    poll("r3 listed again", lambda: all_list_all(lab), 5 * BEACON)
+
+
 def _received(lab: Lab, robot: str, key: str) -> int:
     return next(k["received"] for k in lab.client(robot).keys()["keys"] if k["id"] == key)
 
