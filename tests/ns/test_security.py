@@ -22,7 +22,7 @@ import pytest
 
 from netlab import procstat
 from netlab.lab import Lab
-from sdfr import auth, keystore, wire
+from sdfr import auth, keystore, wifi, wire
 from sdfr.client import Client
 from sdfr.model import Service, service_digest
 from sdfr.protocol import MAX_UNPROVEN
@@ -285,6 +285,30 @@ def test_a_robot_left_out_of_a_rotation_is_named_until_it_has_the_key(
     poll("all clear on r1", lambda: lab.client("r1").health()["status"] == "ok", 6 * BEACON)
     assert "not in the keyring" not in cli_keys(lab, "r1", "list")
     poll("r3 listed again", lambda: all_list_all(lab), 5 * BEACON)
+
+
+def test_one_wifi_secret_keys_discovery_too(
+    fleet_factory: Callable[..., Lab], tmp_path: Path
+) -> None:
+    """Robots given the fleet's WiFi secret and no key_file (on veths: no radio to set up)
+    seal with a key derived from it, enforce it, and find each other; an outsider's unsigned
+    datagram is dropped."""
+    secret = tmp_path / "fleet.secret"
+    secret.write_text("correct horse battery staple\n")
+    secret.chmod(0o600)
+    lab = lab_with_outsider(fleet_factory, wifi_secret_file=secret)
+    derived = auth.key_id(wifi.datagram_key("correct horse battery staple", lab.fleet))
+    for r in ROBOTS:
+        ring = lab.client(r).keys()
+        assert (ring["mode"], ring["primary"]) == ("enforce", derived), (r, ring)
+        assert [k["id"] for k in ring["keys"]] == [derived]
+    poll("every robot hears the others sealed", lambda: all(
+        _received(lab, r, derived) > 0 for r in ROBOTS), 3 * BEACON)  # fmt: skip
+    before = rejects(lab, "r1").get("unsigned", 0)
+    fake = wire.Origin(lab.fleet, "r9", 1, 1, service_digest(()))
+    send(lab, wire.encode(wire.Alive(fake, "http://x/", 30)))
+    poll("unsigned dropped", lambda: rejects(lab, "r1").get("unsigned", 0) > before, 3.0)
+    assert "r9" not in listing(lab, "r1")
 
 
 def _received(lab: Lab, robot: str, key: str) -> int:
