@@ -3,16 +3,23 @@
 A sealed datagram is an ordinary SDfR datagram with one more header line, always the last one
 before the blank line::
 
-    X-SDFR-AUTH: <key id> <counter> <mac>
+    X-SDFR-AUTH: <key id> <counter> <to>:<from> <mac>
 
 - key id: 8 lowercase hex characters naming the key (`key_id`), so a receiver holding several
   keys (a rotation in progress) knows which one to check with;
 - counter: the sender's datagram counter, 1, 2, 3, ... within one boot of the sender.  The pair
-  (boot id, counter) never repeats: boot ids are new on every start (see `sdfr.store`), so
-  replays are recognised with a window per sender (`ReplayWindow`), as in RFC 7474;
+  (boot id, counter) never repeats while the state directory lasts (see `sdfr.store`), so
+  replays of a peer whose counter this robot has synchronised are recognised with a window per
+  sender (`ReplayWindow`), as in RFC 7474;
+- to: whom the datagram is for: ``*`` for the fleet (multicast), else 4 hex characters of a hash
+  of the recipient's robot id; from: 4 hex characters of a hash of the sender's own IP address.
+  Both are hints (a receiver drops a datagram for another robot, or one arriving from another
+  address than its sender's, before computing any MAC); the MAC covers the recipient's whole
+  robot id and the sender's whole address, so a datagram is bound to both: a relay cannot
+  move a robot, and a unicast captured between two robots is worth nothing to a third;
 - mac: HMAC-SHA256 under the key, truncated to 128 bits, base64url without padding (22
-  characters), over a label and the whole datagram with only the mac and its line end left out:
-  every header, the boot id, the counter and the body are covered.
+  characters), over a label, the recipient, the sender's address and the whole datagram with
+  only the mac and its line end left out: every header, the boot id, the counter and the body.
 
 The seal costs at most `wire.SEAL_RESERVE` bytes; the codec keeps that much room free in every
 datagram, so a keyed fleet has exactly the limits of an open one.  Without a key nothing is
@@ -24,6 +31,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
+import zlib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -55,13 +63,19 @@ MAC_CHARS = 22  # base64url of 16 bytes, without the padding
 MAX_COUNTER = 2**53
 AUTH_HEADER = b"X-SDFR-AUTH: "
 #: Domain separation: a key used for anything else never yields a valid SDfR seal.
-_LABEL = b"SDfR-auth-v1\0"
+_LABEL = b"SDfR-auth-v2\0"
 _KID_LABEL = b"SDfR-key-id\0"
 _HEX = frozenset(b"0123456789abcdef")
 _B64URL = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_")
 
+#: Whom a datagram for the whole fleet (multicast) is for.
+FLEET = "*"
+TAG_CHARS = 4
+ROUTE_MAX = TAG_CHARS + 1 + TAG_CHARS
 #: Longest seal line, "\r\n" included: it must fit the room the codec leaves.
-SEAL_LINE_MAX = len(AUTH_HEADER) + KID_CHARS + 1 + len(str(MAX_COUNTER)) + 1 + MAC_CHARS + 2
+SEAL_LINE_MAX = (
+    len(AUTH_HEADER) + KID_CHARS + 1 + len(str(MAX_COUNTER)) + 1 + ROUTE_MAX + 1 + MAC_CHARS + 2
+)
 assert SEAL_LINE_MAX <= SEAL_RESERVE, (SEAL_LINE_MAX, SEAL_RESERVE)
 
 #: How a robot with keys treats the fleet (without keys the fleet is open, whatever the mode):
@@ -73,7 +87,7 @@ Mode: TypeAlias = Literal["accept", "sign", "enforce"]
 MODES: tuple[Mode, ...] = get_args(Mode)
 
 #: Reasons `check` rejects a datagram for (counted like the codec's).
-REJECT_REASONS = ("unsigned", "unknown-key", "bad-mac", "bad-seal")
+REJECT_REASONS = ("unsigned", "unknown-key", "bad-mac", "bad-seal", "not-for-me", "relayed")
 
 
 @lru_cache(maxsize=64)
@@ -143,35 +157,61 @@ def plain_ssdp_answered(wanted: bool | None, keyring: Keyring) -> bool:
 
 @dataclass(frozen=True, slots=True)
 class Sealed:
-    """A datagram whose seal checked out: the key it was sealed with and its counter."""
+    """A datagram whose seal checked out: the key it was sealed with, its counter, and whether
+    it was for the whole fleet (multicast) rather than for this robot alone."""
 
     kid: str
     counter: int
+    fleet: bool = True
 
 
-def _mac(key: bytes, signed: bytes) -> bytes:
-    digest = hmac.digest(key, _LABEL + signed, "sha256")[:MAC_BYTES]
+def host_of(address: str) -> str:
+    """An IP address as both ends of a seal write it: no brackets, no zone, lower case."""
+    return address.strip("[]").partition("%")[0].lower()
+
+
+@lru_cache(maxsize=1024)
+def _tag(text: str) -> bytes:
+    return b"%04x" % (zlib.crc32(text.encode()) & 0xFFFF)
+
+
+def _route(to: str | None, sender: str) -> bytes:
+    return (FLEET.encode() if to is None else _tag(to)) + b":" + _tag(host_of(sender))
+
+
+def _mac(key: bytes, to: str | None, sender: str, signed: bytes) -> bytes:
+    bound = b"%s%s\0%s\0" % (
+        _LABEL,
+        (FLEET if to is None else to).encode(),
+        host_of(sender).encode(),
+    )
+    digest = hmac.digest(key, bound + signed, "sha256")[:MAC_BYTES]
     return base64.urlsafe_b64encode(digest)[:MAC_CHARS]
 
 
-def seal(data: bytes, key: bytes, counter: int) -> bytes:
-    """`data` with the seal line added; ValueError if it has no header end or grows too big."""
+def seal(
+    data: bytes, key: bytes, counter: int, *, to: str | None = None, sender: str = ""
+) -> bytes:
+    """`data` with the seal line added, bound to its recipient `to` (a robot id; None: the
+    whole fleet, by multicast) and to the sender's own IP address `sender`; ValueError if it
+    has no header end or grows too big."""
     if not 1 <= counter <= MAX_COUNTER:
         raise ValueError(f"counter must be 1..{MAX_COUNTER}, not {counter}")
     end = data.find(b"\r\n\r\n")
     if end < 0:
         raise ValueError("not an SDfR datagram: no end of headers")
     head, rest = data[: end + 2], data[end + 2 :]
-    prefix = b"%s%s %d " % (AUTH_HEADER, key_id(key).encode(), counter)
-    out = b"".join((head, prefix, _mac(key, head + prefix + rest), b"\r\n", rest))
+    prefix = b"%s%s %d %s " % (AUTH_HEADER, key_id(key).encode(), counter, _route(to, sender))
+    mac = _mac(key, to, sender, head + prefix + rest)
+    out = b"".join((head, prefix, mac, b"\r\n", rest))
     if len(out) > MAX_DATAGRAM:
         raise ValueError(f"sealed datagram would be {len(out)} bytes, more than {MAX_DATAGRAM}")
     return out
 
 
-def _seal_line(data: bytes) -> tuple[int, str, int, bytes] | Reject | None:
+def _seal_line(data: bytes) -> tuple[int, str, int, bytes, bytes] | Reject | None:
     """The seal of a datagram as written (not checked): where its line ends, key id, counter,
-    mac; None when there is none, a Reject when it is malformed."""
+    route, mac; None when there is none, a Reject when it is malformed."""
     end = data.find(b"\r\n\r\n")
     start = data.rfind(b"\n", 0, end) + 1 if end > 0 else 0
     if end < 0 or not data.startswith(AUTH_HEADER, start):
@@ -179,36 +219,47 @@ def _seal_line(data: bytes) -> tuple[int, str, int, bytes] | Reject | None:
             return Reject("bad-seal", "X-SDFR-AUTH is not the last header line")
         return None
     fields = data[start + len(AUTH_HEADER) : end].split(b" ")
-    if len(fields) != 3:
-        return Reject("bad-seal", "X-SDFR-AUTH is not '<key id> <counter> <mac>'")
-    kid, ctr, mac = fields
+    if len(fields) != 4:
+        return Reject("bad-seal", _SEAL_FORM)
+    kid, ctr, route, mac = fields
+    to, colon, sender = route.partition(b":")
     if (
         len(kid) != KID_CHARS
         or not _HEX.issuperset(kid)
         or not 0 < len(ctr) <= 16
         or not ctr.isdigit()
+        or not colon
+        or not (to == b"*" or (len(to) == TAG_CHARS and _HEX.issuperset(to)))
+        or len(sender) != TAG_CHARS
+        or not _HEX.issuperset(sender)
         or len(mac) != MAC_CHARS
         or not _B64URL.issuperset(mac)
     ):
-        return Reject("bad-seal", "X-SDFR-AUTH is not '<key id> <counter> <mac>'")
+        return Reject("bad-seal", _SEAL_FORM)
     counter = int(ctr)
     if not 1 <= counter <= MAX_COUNTER:
         return Reject("bad-seal", f"counter {counter} out of range")
-    return end, kid.decode(), counter, mac
+    return end, kid.decode(), counter, route, mac
+
+
+_SEAL_FORM = "X-SDFR-AUTH is not '<key id> <counter> <to>:<from> <mac>'"
 
 
 def seal_of(data: bytes) -> Sealed | None:
     """The key id and counter a datagram's seal names, *unchecked* (for captures: whoever
     reads a pcap needs no key to see which key a robot used)."""
     line = _seal_line(data)
-    return Sealed(line[1], line[2]) if isinstance(line, tuple) else None
+    return Sealed(line[1], line[2], line[3][:1] == b"*") if isinstance(line, tuple) else None
 
 
-def check(data: bytes, keyring: Keyring) -> Sealed | Reject | None:
-    """Check the seal of a received datagram before anything else reads it.
+def check(data: bytes, keyring: Keyring, *, me: str = "", src: str = "") -> Sealed | Reject | None:
+    """Check the seal of a datagram that robot `me` received from the IP address `src`,
+    before anything else reads it.
 
     Returns the seal when it is valid, None for an unsigned datagram the keyring lets through,
-    and a Reject otherwise.  Only the seal line is looked at; nothing else is parsed.
+    and a Reject otherwise: "not-for-me" when it was sealed for another robot, "relayed" when
+    its sender sealed it with another address than the one it came from.  Only the seal line
+    is looked at; nothing else is parsed.
     """
     line = _seal_line(data)
     if line is None:
@@ -217,14 +268,20 @@ def check(data: bytes, keyring: Keyring) -> Sealed | Reject | None:
         return Reject("unsigned", "the fleet is keyed and the datagram carries no seal")
     if isinstance(line, Reject):
         return line
-    end, kid, counter, mac = line
+    end, kid, counter, route, mac = line
     key = keyring.keys.get(kid)
     if key is None:
         return Reject("unknown-key", f"sealed with key {kid}, not in the keyring")
+    to, _, sender = route.partition(b":")
+    fleet = to == b"*"
+    if not fleet and to != _tag(me):
+        return Reject("not-for-me", "sealed for another robot")
+    if sender != _tag(host_of(src)):
+        return Reject("relayed", f"sealed by another address than {src}")
     signed = data[: end - MAC_CHARS] + data[end + 2 :]
-    if not hmac.compare_digest(_mac(key, signed), mac):
+    if not hmac.compare_digest(_mac(key, None if fleet else me, src, signed), mac):
         return Reject("bad-mac", f"seal of key {kid} does not match")
-    return Sealed(kid, counter)
+    return Sealed(kid, counter, fleet)
 
 
 WINDOW = 64
@@ -249,6 +306,10 @@ class ReplayWindow:
             return True
         back = self.top - counter
         return back < WINDOW and not (self.seen >> back) & 1
+
+    def reset(self) -> None:
+        """Forget what was seen: the next counter of any boot is new."""
+        self.boot, self.top, self.seen = -1, 0, 0
 
     def accept(self, boot: int, counter: int) -> None:
         if boot != self.boot:

@@ -50,3 +50,31 @@ class KeyedBuckets:
 
     def __len__(self) -> int:
         return len(self._buckets)
+
+
+class ByteCredit:
+    """Bytes received from each key (a source address) not yet spent on answers to it: what
+    may be sent back there without amplifying.  At most `cap` saved per key and `max_keys`
+    keys; the least recently used is forgotten first, which at worst leaves it no credit."""
+
+    def __init__(self, cap: int, max_keys: int) -> None:
+        self.cap = cap
+        self.max_keys = max_keys
+        self._credit: OrderedDict[str, int] = OrderedDict()
+
+    def earn(self, key: str, n: int) -> None:
+        credit = self._credit.pop(key, 0)
+        if len(self._credit) >= self.max_keys:
+            self._credit.popitem(last=False)
+        self._credit[key] = min(self.cap, credit + n)
+
+    def spend(self, key: str, n: int) -> bool:
+        """Spend `n` bytes of `key`'s credit if it has that many; False (nothing spent) if not."""
+        credit = self._credit.get(key, 0)
+        if credit < n:
+            return False
+        self._credit[key] = credit - n
+        return True
+
+    def __len__(self) -> int:
+        return len(self._credit)

@@ -11,6 +11,7 @@ from sdfr.errors import ConfigError
 
 _SYS = Path("/sys/class/net")
 _SIOCGIFADDR = 0x8915
+_SIOCGIFNETMASK = 0x891B
 
 
 def exists(iface: str) -> bool:
@@ -56,6 +57,22 @@ def ipv4(iface: str, sock: socket.socket | None = None) -> str | None:
     except OSError:
         return None
     return socket.inet_ntoa(res[20:24])
+
+
+def ipv4_network(iface: str, sock: socket.socket | None = None) -> str | None:
+    """The interface's primary IPv4 subnet ("10.1.0.0/16"), or None when it has no address."""
+    if sock is None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            return ipv4_network(iface, s)
+    name = struct.pack("256s", iface.encode()[:15])
+    try:
+        addr = fcntl.ioctl(sock.fileno(), _SIOCGIFADDR, name)[20:24]
+        mask = fcntl.ioctl(sock.fileno(), _SIOCGIFNETMASK, name)[20:24]
+    except OSError:
+        return None
+    prefix = bin(int.from_bytes(mask, "big")).count("1")
+    net = int.from_bytes(addr, "big") & int.from_bytes(mask, "big")
+    return f"{socket.inet_ntoa(net.to_bytes(4, 'big'))}/{prefix}"
 
 
 def index(iface: str) -> int:

@@ -105,12 +105,13 @@ class DiscoveryLayer:
         self.core = Core(
             cfg.core_config(),
             boot_id=self.boot_id,
-            rng=random.Random(),
+            rng=random.SystemRandom(),  # the pings' nonces must be unguessable
             location=self._location(),
             version=version,
             services=services,
             keyring=keyring,
         )
+        self.core.set_subnet(netif.ipv4_network(self.iface) if self.address else None)
         saved = store.load_peers()
         self.core.restore([r.shifted(-self.clock_offset) for r in saved])
         # Nobody is reachable before we hear them again: tell the changes feed so.
@@ -499,6 +500,7 @@ class DiscoveryLayer:
             log.info("address of %s is now %s", self.iface, address or "none")
             self.address = address
             if address:
+                self.core.set_subnet(netif.ipv4_network(self.iface, self.sock))
                 self.core.set_location(self._location(), time.monotonic())
                 self._pump()
             if self.core.started:

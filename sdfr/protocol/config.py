@@ -15,24 +15,44 @@ Outgoing = tuple[bytes, Addr | None]
 
 #: Robots the history map holds at most; when full, the one silent longest is forgotten.
 MAX_PEERS = 1024
-#: Robots heard (unsigned) but never proven by a round trip, held at most.
+#: Robots heard but never proven by a round trip in this run (and not in the history map),
+#: held at most.
 MAX_UNPROVEN = 256
-#: Update parts buffered for unproven robots, shared among them (but at least
-#: UNPROVEN_PARTS_MIN each); the rest is fetched once a robot is proven.
+#: Update parts held for robots whose set is not yet believed (unproven robots, new boots,
+#: new versions), shared among them (but at least UNPROVEN_PARTS_MIN each); the rest is
+#: fetched once the robot answers.
 UNPROVEN_PARTS = 512
 UNPROVEN_PARTS_MIN = 4
+#: And in bytes of the services' JSON (a deflated part may inflate to far more than it took
+#: on the air), in all: what fakes that never answer can make a robot hold.
+UNPROVEN_BYTES = 2 * 1024 * 1024
 #: Challenges sent at most, per second and in a burst, to all addresses together.
 CHALLENGE_RATE = 20.0
 CHALLENGE_BURST = 128.0
+#: A robot that just answered a challenge is challenged again no sooner than this.
+CHALLENGE_GAP = 0.05
+#: And to one address, per second and in a burst (many robots claimed at one address cost
+#: that address no more).
+ADDR_CHALLENGE_RATE = 1.0
+ADDR_CHALLENGE_BURST = 3.0
+#: Pings in flight at most (each waits a ping timeout for its answer).
+MAX_PINGS = 4096
+#: Bytes received from an address and not yet answered, kept per address at most: the most a
+#: robot may send to an address that has not proven a round trip.
+CREDIT_CAP = 64 * 1024
 #: Datagrams read from one source address, per second and in a burst; the rest are dropped
 #: unread.  A whole set of 255 parts fits in the burst.
 SOURCE_RATE = 500.0
 SOURCE_BURST = 1000.0
 MAX_SOURCES = 4096
-#: Plain SSDP searches answered at most, per second and in a burst (ssdp_interop).
+#: Plain SSDP searches answered at most, per second and in a burst (ssdp_interop), in all
+#: and from one source address.
 PLAIN_RATE = 10.0
 PLAIN_BURST = 20.0
-#: Whole sets multicast in answer to searches at most once in this many seconds.
+PLAIN_SOURCE_RATE = 0.5
+PLAIN_SOURCE_BURST = 1.0
+#: Whole sets multicast in answer to searches at most once in this many seconds, and at most
+#: once a beacon period.
 MCAST_SET_GAP = 1.0
 #: Update parts one address is served at most, per second, in whole sets of ours.
 FETCH_SETS_PER_S = 2.0
@@ -103,6 +123,19 @@ class CoreConfig:
     @property
     def max_age(self) -> int:
         return max(1, math.ceil(self.dead_after))
+
+    @property
+    def mcast_set_gap(self) -> float:
+        return max(MCAST_SET_GAP, self.beacon_interval)
+
+    def proof_window(self, turns: int = 1) -> float:
+        """How long a peer's last answer to a ping of ours keeps it listed reachable: the miss
+        limit of its ping periods (a beacon period times the turns its peers take, when beacons
+        are the pings)."""
+        period = self.ping_interval
+        if self.wire_compact and self.ping_interval >= self.beacon_interval:
+            period = max(period, self.beacon_interval * max(1, turns))
+        return max(self.dead_after, self.miss_limit * period)
 
     @property
     def proven_for(self) -> float:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import ipaddress
 import math
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 from urllib.parse import urlsplit
 
 from sdfr import auth, wire
@@ -13,8 +15,10 @@ from sdfr.protocol.config import (
     CHALLENGE_RATE,
     FETCH_SETS_PER_S,
     MAX_PEERS,
+    MAX_PINGS,
     MAX_REPLY_TO,
     MAX_UNPROVEN,
+    UNPROVEN_BYTES,
     UNPROVEN_PARTS,
     UNPROVEN_PARTS_MIN,
     Addr,
@@ -23,13 +27,27 @@ from sdfr.protocol.config import (
 )
 from sdfr.protocol.peers import Conflict, Peer, _Fetch, _Ping
 from sdfr.protocol.state import CoreState
-from sdfr.wire import WANT_ALL, Alive, Byebye, Discovery, Origin, Reject, Response, Update
+from sdfr.wire import (
+    WANT_ALL,
+    WIRE_COMPACT,
+    Alive,
+    Byebye,
+    Discovery,
+    Origin,
+    Reject,
+    Response,
+    Update,
+)
 
 _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: "alive"}
 #: A peer's smoothed RTT is stored (and listed) again once it moved from the stored one by more
 #: than this share of it and this many seconds: a true figure without a write per round trip.
 RTT_TELL_SHARE = 0.2
 RTT_TELL_S = 0.002
+#: A reachable peer whose answers stop coming is pinged once every 1/REPROVE_PINGS of its proof
+#: window over the last two thirds of it (16 pings): the chance that a live robot on a link
+#: losing 30 % each way misses them all is 0.51 ** 16, about one in 50,000.
+REPROVE_PINGS = 24
 
 
 class Core(CoreState):
@@ -43,6 +61,7 @@ class Core(CoreState):
 
     def start(self, now: float) -> None:
         """Announce ourselves and ask who is there."""
+        self._now = now
         self._started = True
         self._search(now)
         self._send_update_parts(None, now)
@@ -59,12 +78,19 @@ class Core(CoreState):
 
     # -- inputs ----------------------------------------------------------------------------
 
+    def set_subnet(self, subnet: str | None) -> None:
+        """Our own subnet ("10.1.0.0/16"): plain SSDP searches from elsewhere are not answered.
+        Without one, our address's /24 (or /64) stands in."""
+        self.subnet = None if subnet is None else ipaddress.ip_network(subnet, strict=False)
+
     def set_keyring(self, keyring: Keyring) -> None:
         """The fleet keyring changed (a key installed, put to use or removed; the mode)."""
         self.keyring = keyring
 
     def set_location(self, location: str, now: float | None = None) -> None:
         """Our address (so LOCATION) changed; with `now`, tell the fleet at once."""
+        if now is not None:
+            self._now = now
         self.location = location
         self._parts_cache = None
         if now is not None and self._started and not self._stopped:
@@ -92,7 +118,9 @@ class Core(CoreState):
             self._update_at = min(self._update_at, due)
 
     def restore(self, views: Iterable[PeerRecord]) -> None:
-        """Load the history map saved by an earlier run; every peer starts unreachable."""
+        """Load the history map saved by an earlier run: every peer starts unreachable and
+        unproven (what it said in an earlier run of ours proves nothing now), and is listed
+        again once it answers a ping of this run."""
         for v in views:
             if v.robot_id == self.config.robot_id:
                 continue
@@ -109,7 +137,8 @@ class Core(CoreState):
                 version=v.version,
                 digest=v.digest,
                 reachable=False,
-                proven=True,  # only proven robots are saved
+                proven=False,
+                known=True,  # only robots proven once are saved
                 held=held,
                 services=v.services if held else (),
                 rtt=None if v.rtt_ms is None else v.rtt_ms / 1000,
@@ -117,11 +146,13 @@ class Core(CoreState):
 
     def receive(self, data: bytes, src: Addr, now: float) -> None:
         """A datagram arrived from `src`."""
+        self._now = now
         self.counters.bytes_in += len(data)
         if not self._sources.take(src[0], now):
             self.counters.rejects["rate-limited"] += 1
             return
-        seal = auth.check(data, self.keyring)
+        self._credit.earn(src[0], len(data))
+        seal = auth.check(data, self.keyring, me=self.config.robot_id, src=src[0])
         if isinstance(seal, Reject):
             if seal.reason == "unsigned" and self._plain_search_allowed(data):
                 seal = None  # a plain SSDP client's search: read-only, answered below
@@ -148,27 +179,34 @@ class Core(CoreState):
         if origin.robot_id == self.config.robot_id:
             self._on_own_id(msg, origin, src, seal, now)
             return
-        if isinstance(msg, Byebye) and origin.robot_id not in self.peers:
-            return  # a robot we never knew leaves: nothing to do
-        proof = self._is_proof(msg, origin, src)
-        peer, refused = self._gate(origin, src, now, seal, proof)
+        if isinstance(msg, Byebye):
+            known = self.peers.get(origin.robot_id)
+            if known is None or not known.proven:
+                if known is not None and not known.known:
+                    self._forget(known)
+                return  # a robot we never proved leaves: nothing to believe, nothing to ask
+        proof = self._take_proof(msg, origin, src, now)
+        peer, believed = self._gate(origin, src, now, seal, proof)
         if isinstance(msg, Discovery):
-            self._on_discovery(msg, peer, src, now, answer_ping=refused != "replay")
+            self._on_discovery(msg, peer if believed else None, src, now, answer_ping=True)
+            if peer is not None and not believed and isinstance(msg.want, str):
+                self._remember_search(msg, peer, src, now)
             return
         if peer is None:
+            return
+        if isinstance(msg, Update):
+            # Held until its set is believed (an answer confirms it), applied at once if it is.
+            self._on_update(peer, msg, now)
+        if not believed:
+            if isinstance(msg, Response) and msg.ping is not None and msg.seq is not None:
+                self._answer_ping(origin, msg.ping, src, now)  # let it prove us in turn
             return
         if isinstance(msg, Byebye):
             self._on_byebye(peer)
             return
         self._heard(peer, origin, src, now, getattr(msg, "location", None), proof)
-        soon = False
-        if isinstance(msg, Update):
-            # More parts of a whole set are normally right behind this one; a delta we
-            # could not apply will not be followed by anything that helps.
-            soon = msg.base is None
-            self._on_update(peer, msg, now)
-        elif isinstance(msg, Response):
-            self._on_response(peer, msg, src, now)
+        if isinstance(msg, Response):
+            self._on_response(peer, msg, src, now, proof)
         elif (
             isinstance(msg, Alive)
             and msg.seq is not None
@@ -176,14 +214,18 @@ class Core(CoreState):
         ):
             # A beacon that is a ping to all who hear it (or to those whose turn it is):
             # answer it (the compact ping reply).
-            self._send(Response(self._origin(), self._me(), "", 0, msg.seq), src)
-        if peer.robot_id in self.peers:
+            self._answer_ping(origin, msg.seq, src, now)
+        if peer.robot_id in self.peers and peer.proven:
+            # More parts of a whole set are normally right behind this one; a delta we
+            # could not apply will not be followed by anything that helps.
+            soon = isinstance(msg, Update) and msg.base is None
             self._want_current(peer, now, soon=soon)
 
     def handle_timer(self, now: float) -> None:
         """Do whatever is due at `now`."""
         if not self._started or self._stopped:
             return
+        self._now = now
         cfg = self.config
         if now >= self._discovery_repeat:
             self._discovery_repeat = math.inf
@@ -202,8 +244,9 @@ class Core(CoreState):
         for seq in expired:
             ping = self._pings.pop(seq)
             peer = self.peers.get(ping.robot_id)
-            if peer is not None and ping.addr == peer.address:
-                # (A challenge to another address says nothing of the peer's link.)
+            if peer is not None and ping.addr == peer.address and peer.proven:
+                # (A challenge to another address, or to a robot not proven yet, says nothing
+                # of the peer's link.)
                 self._settle_ping(peer, ok=False)
         late = [s for s, g in self._group_pings.items() if now >= g.sent + cfg.ping_timeout]
         for seq in late:
@@ -211,22 +254,39 @@ class Core(CoreState):
                 peer = self.peers.get(robot_id)
                 if peer is not None and addr == peer.address:
                     self._settle_ping(peer, ok=False)
+        if self.conflict is not None and now >= self.conflict.last_seen + cfg.dead_after:
+            self.conflict = None  # no second daemon has answered for a miss window
+        window = cfg.proof_window(self._turns)
         for peer in list(self.peers.values()):
-            if not peer.proven and now >= peer.last_heard + cfg.dead_after:
+            if not peer.known and now >= peer.last_heard + cfg.dead_after:
                 self._forget(peer)
                 continue
-            if peer.reachable and now >= peer.last_heard + cfg.dead_after:
+            if peer.reachable and (
+                now >= peer.answered_at + window or now >= peer.last_heard + cfg.dead_after
+            ):
+                # Silent for the miss limit, or no answer to our pings for a miss window:
+                # whatever else arrives in its name (a replay, a relay, a late datagram) does
+                # not keep it listed.
                 peer.reachable = False
                 peer.next_ping = math.inf
-                peer.fetch = None
+                self._drop_fetch(peer)
                 self._dirty.add(peer.robot_id)
                 continue
-            if peer.reachable and now >= peer.next_ping:
-                if peer.proven:
-                    self._ping(peer, now)
-                else:
+            if not peer.proven and now >= peer.next_ping:
+                if now < peer.claimed_at + cfg.dead_after:
                     self._challenge(peer, peer.address, now)
                     peer.next_ping = max(peer.next_ping, now + 1.0 / CHALLENGE_RATE)
+                else:
+                    peer.next_ping = math.inf
+            elif peer.reachable and now >= peer.next_ping:
+                self._ping(peer, now)
+            elif peer.reachable and now >= self._reprove_at(peer, window):
+                # Its answers went missing lately (a lossy link): ask it alone, REPROVE_PINGS
+                # times in what is left of its window, so that only a robot really gone (or
+                # a link really down) runs out of it.
+                peer.challenged_at = now
+                if self._challenge_budget.take(now):
+                    self._ping(peer, now, challenge=True)
             if peer.fetch is not None and now >= peer.fetch.retry_at:
                 self._request_fetch(peer, now)
 
@@ -246,10 +306,21 @@ class Core(CoreState):
             t = min(t, ping.sent + cfg.ping_timeout)
         for group in self._group_pings.values():
             t = min(t, group.sent + cfg.ping_timeout)
+        if self.conflict is not None:
+            t = min(t, self.conflict.last_seen + cfg.dead_after)
+        window = cfg.proof_window(self._turns)
         for peer in self.peers.values():
             if peer.reachable:
-                t = min(t, peer.last_heard + cfg.dead_after, peer.next_ping)
+                t = min(
+                    t,
+                    peer.answered_at + window,
+                    peer.last_heard + cfg.dead_after,
+                    peer.next_ping,
+                    self._reprove_at(peer, window),
+                )
             elif not peer.proven:
+                t = min(t, peer.next_ping)
+            if not peer.known:
                 t = min(t, peer.last_heard + cfg.dead_after)
             if peer.fetch is not None:
                 t = min(t, peer.fetch.retry_at)
@@ -277,7 +348,7 @@ class Core(CoreState):
         views = []
         for r in sorted(self._dirty):
             peer = self.peers.get(r)
-            if peer is not None and peer.proven:
+            if peer is not None and peer.known:
                 peer.rtt_told = peer.rtt
                 views.append(self.view(peer))
         self._dirty.clear()
@@ -324,16 +395,19 @@ class Core(CoreState):
 
     def _gate(
         self, origin: Origin, src: Addr, now: float, seal: Sealed | None, proof: bool
-    ) -> tuple[Peer | None, str | None]:
-        """The peer a datagram speaks for, or None and why it must not be believed.
+    ) -> tuple[Peer | None, bool]:
+        """The peer a datagram speaks for (None: refused), and whether what it says may be
+        believed now.
 
-        Freshness: a sealed datagram's counter must be new for its boot.  Claims that
-        contradict what the peer last proved (see the module's notes) are answered with a
-        challenge instead of being applied, unless this datagram is itself such an answer.
+        Only a peer's answer to a ping of ours (`proof`: its nonce makes it fresh) changes
+        what we believe of it: its boot, version, digest and address.  Anything else from a
+        robot not proven in this run, of another boot or from another address is not believed
+        but answered with a challenge; its Update parts may be held until the answer comes.
+        A sealed datagram whose counter was seen already in the proven boot is a replay.
         """
         peer = self.peers.get(origin.robot_id)
         if peer is None:
-            refused = self._admit(seal is not None, now)
+            refused = self._admit(now)
             if refused is not None:
                 return self._refuse(refused)
             peer = self.peers[origin.robot_id] = Peer(
@@ -345,50 +419,59 @@ class Core(CoreState):
                 boot_id=origin.boot_id,
                 version=origin.version,
                 digest=origin.digest,
-                proven=seal is not None,
             )
+            self._unproven += 1
+        if proof:
+            self._prove(peer, origin, src, now)
             if seal is not None:
+                if not peer.window.fresh(origin.boot_id, seal.counter):
+                    # A boot id used again (its state lost), whose new counters are below
+                    # the old ones: the answer is fresh by its nonce, so its counter is too.
+                    peer.window.reset()
                 peer.window.accept(origin.boot_id, seal.counter)
-            else:
-                self._unproven += 1
-                self._challenge(peer, src, now)
-            return peer, None
-        if (
-            seal is not None
-            and origin.boot_id == peer.boot_id
-            and not peer.window.fresh(origin.boot_id, seal.counter)
-        ):
-            return self._refuse("replay")
-        if src != peer.address and not proof and peer.proven:
+            return peer, True
+        if not peer.proven:
+            # Never proven in this run (a new robot, or one of the history map): say nothing
+            # of it until it answers.  (The claim goes where its datagram came from.)
+            self.counters.rejects["unproven"] += 1
+            peer.claimed_at = now
+            if not peer.known:  # (a robot of the history map keeps its record as it was)
+                peer.last_heard = now
+                peer.address = src
+                peer.wire = origin.wire  # (only the form of what we send it)
+            self._challenge(peer, src, now)
+            return peer, False
+        if seal is not None and origin.boot_id == peer.boot_id:
+            if not peer.window.fresh(origin.boot_id, seal.counter):
+                return self._refuse("replay")
+            peer.window.accept(origin.boot_id, seal.counter)
+        if src != peer.address:
             # A robot moves only to where it answers a challenge: a datagram sent again
             # from elsewhere must not move it (nor bring a dead one back there).
             self._challenge(peer, src, now)
-            return self._refuse("other-address")
+            self._refuse("other-address")
+            return peer, False
         if origin.boot_id != peer.boot_id:
-            if origin.boot_id < peer.boot_id and not proof:
-                # An earlier life's datagram, late or replayed; or the robot lost its state
-                # (and its clock): only its answer to a challenge tells.
-                self._challenge(peer, src, now)
-                return self._refuse("stale-boot")
-            self._new_boot(peer, origin)
-        elif peer.byebye_boot == origin.boot_id and not proof:
-            # After a Byebye only a reply to our challenge brings that boot back (a Byebye
+            # A new boot, an earlier life's datagram (late or replayed), or a robot that lost
+            # its state (and its clock): only its answer to a challenge tells.
+            self._challenge(peer, src, now)
+            self._refuse("stale-boot" if origin.boot_id < peer.boot_id else "unproven")
+            return peer, False
+        if peer.byebye_boot == origin.boot_id:
+            # After a Byebye only an answer to our challenge brings that boot back (a Byebye
             # anyone could have sent must not lock a robot out).
             self._challenge(peer, src, now)
-            return self._refuse("after-byebye")
-        if seal is not None:
-            peer.window.accept(origin.boot_id, seal.counter)
-        if proof:
-            peer.byebye_boot = None
-        return peer, None
+            self._refuse("after-byebye")
+            return peer, False
+        return peer, True
 
-    def _refuse(self, reason: str) -> tuple[None, str]:
+    def _refuse(self, reason: str) -> tuple[None, bool]:
         self.counters.rejects[reason] += 1
-        return None, reason
+        return None, False
 
-    def _admit(self, sealed: bool, now: float) -> str | None:
+    def _admit(self, now: float) -> str | None:
         """Make room for a new robot; the reason it cannot have any, else None."""
-        if not sealed and self._unproven >= MAX_UNPROVEN:
+        if self._unproven >= MAX_UNPROVEN:
             return "unproven-full"
         if len(self.peers) < MAX_PEERS:
             return None
@@ -397,46 +480,72 @@ class Core(CoreState):
             return "peers-full"
         oldest = min(gone, key=lambda p: p.last_heard)
         self._forget(oldest)
-        if oldest.proven:
+        if oldest.known:
             self._removed.add(oldest.robot_id)
         return None
 
     def _forget(self, peer: Peer) -> None:
         del self.peers[peer.robot_id]
-        if not peer.proven:
+        self._drop_fetch(peer)
+        if not peer.known:
             self._unproven -= 1
         self._dirty.discard(peer.robot_id)
         for seq in [s for s, p in self._pings.items() if p.robot_id == peer.robot_id]:
             del self._pings[seq]
 
-    def _is_proof(self, msg: wire.Message, origin: Origin, src: Addr) -> bool:
-        """Whether `msg` answers one of our challenges, from where the challenge went."""
+    def _reprove_at(self, peer: Peer, window: float) -> float:
+        """When a reachable peer whose answers went missing is pinged again."""
+        return max(peer.answered_at + window / 3, peer.challenged_at + window / REPROVE_PINGS)
+
+    def _take_proof(self, msg: wire.Message, origin: Origin, src: Addr, now: float) -> bool:
+        """Whether `msg` answers a ping of ours (its nonce) from where the ping went; the ping
+        is settled (used up) only then, so a forgery cannot take it away."""
         if not isinstance(msg, Response) or msg.seq is None:
             return False
         ping = self._pings.get(msg.seq)
-        return (
-            ping is not None
-            and ping.challenge
-            and ping.robot_id == origin.robot_id
-            and ping.addr == src
-        )
+        if ping is not None:
+            if ping.robot_id != origin.robot_id or ping.addr != src:
+                return False
+            del self._pings[msg.seq]
+            peer = self.peers.get(origin.robot_id)
+            if peer is not None:
+                if ping.addr == peer.address or not peer.proven:
+                    self._round_trip(peer, now - ping.sent, src, now)
+                else:
+                    self._answered[src] = now
+            return True
+        group = self._group_pings.get(msg.seq)
+        if group is None or group.targets.get(origin.robot_id) != src:
+            return False
+        del group.targets[origin.robot_id]
+        if not group.targets:
+            del self._group_pings[msg.seq]
+        peer = self.peers.get(origin.robot_id)
+        if peer is not None:
+            self._round_trip(peer, now - group.sent, src, now)
+        return True
 
     def _challenge(self, peer: Peer, addr: Addr, now: float) -> bool:
         """Ping `peer` at `addr` so that its answer settles a claim; False if none was sent.
 
-        One at a time per robot, at most one a ping timeout, and CHALLENGE_RATE in all: a
-        flood of claims costs a bounded trickle of pings.
+        One at a time per robot, at most one a ping timeout; per address and in all at most
+        ADDR_CHALLENGE_RATE and CHALLENGE_RATE; and to an address that has not proven a round
+        trip, no more bytes than it sent (`_emit`): a flood of claims costs a bounded trickle.
         """
         if now < peer.challenged_at + self.config.ping_timeout:
             return True  # one is in flight (or was just answered)
+        if not self._address_proven(addr, now) and not self._addr_challenges.take(addr[0], now):
+            self.counters.challenges_limited += 1
+            return False
         if not self._challenge_budget.take(now):
             self.counters.challenges_limited += 1
             if not peer.proven:  # try again as soon as the budget allows
                 peer.next_ping = min(peer.next_ping, now + 1.0 / CHALLENGE_RATE)
             return False
+        if not self._ping(peer, now, addr=addr, challenge=True):
+            return False
         peer.challenged_at = now
         self.counters.challenges += 1
-        self._ping(peer, now, addr=addr, challenge=True)
         return True
 
     def _address_proven(self, addr: Addr, now: float) -> bool:
@@ -449,6 +558,8 @@ class Core(CoreState):
         for addr in [a for a, t in self._answered.items() if t < horizon]:
             del self._answered[addr]
         self._wire_at = {p.address: p.wire for p in self.peers.values()}
+        # What unbelieved sets hold, counted again (the running count is only bookkeeping).
+        self._held_bytes = sum(p.fetch.size for p in self.peers.values() if p.fetch is not None)
         self._next_prune = now + self.config.proven_for
 
     def _plain_search_allowed(self, data: bytes) -> bool:
@@ -457,43 +568,65 @@ class Core(CoreState):
         return self.ssdp_interop and data.startswith(b"M-SEARCH ") and b"X-SDFR" not in data
 
     def _on_plain_search(self, msg: Discovery, src: Addr, now: float) -> None:
-        """A plain SSDP client: a standard search response, read-only, rate-limited."""
+        """A plain SSDP client: its one standard search response, read-only, only on our own
+        subnet, and rate-limited per source and in all (the answer is larger than the search:
+        no more than that to an address that may be a spoofed victim's)."""
         cfg = self.config
         if not self.ssdp_interop:
             self.counters.rejects["ssdp-interop-off"] += 1
             return
-        if not self._plain_budget.take(now):
+        if not self._on_subnet(src[0]):
+            self.counters.rejects["off-subnet"] += 1
+            return
+        if not self._plain_sources.take(src[0], now) or not self._plain_budget.take(now):
             self.counters.rejects["rate-limited"] += 1
             return
         answer = Response(self._origin(), msg.st, self.location, cfg.max_age)
-        self._send(answer, src, compact=False)  # a standard client gets the full answer
+        self._send(answer, src, compact=False, answer=True)  # a standard client: the full form
+
+    def _on_subnet(self, host: str) -> bool:
+        """Whether `host` is on our own subnet (`subnet`; without one, our address's /24)."""
+        try:
+            addr = ipaddress.ip_address(auth.host_of(host))
+            if self.subnet is not None:
+                return addr in self.subnet
+            own = self._own_host()
+            if own is None:
+                return False
+            prefix = 24 if addr.version == 4 else 64
+            return addr in ipaddress.ip_network(f"{auth.host_of(own)}/{prefix}", strict=False)
+        except ValueError:
+            return False
 
     def _on_own_id(
         self, msg: wire.Message, origin: Origin, src: Addr, seal: Sealed | None, now: float
     ) -> None:
-        """A datagram with our robot id: our own echo, a replay, or a second daemon."""
+        """A datagram with our robot id: our own echo, a replay, or a second daemon.  Only a
+        second daemon that answers a challenge of ours (its nonce) is a conflict."""
         if isinstance(msg, Response) and msg.seq is not None:
-            ping = self._pings.pop(msg.seq, None)
+            ping = self._pings.get(msg.seq)
             if ping is not None and ping.robot_id == origin.robot_id and ping.addr == src:
+                del self._pings[msg.seq]
                 self._conflict(src, origin, now)  # it answered: a live second daemon
                 return
-        if origin.boot_id == self.boot_id and src[0] == self._own_host():
-            self.counters.rejects["own"] += 1  # our own datagram, come back
-            return
-        if seal is not None and origin.boot_id < self.boot_id:
-            # An earlier life of ours replayed, or a second daemon started before us: a
-            # challenge tells, since only a live daemon answers one.
+        if origin.boot_id == self.boot_id and (seal is not None or src[0] == self._own_host()):
+            # Our own datagram come back (a sealed one was sealed by us, from where it came).
             self.counters.rejects["own"] += 1
-            if now >= self._own_challenge_at + self.config.ping_timeout:
-                self._own_challenge_at = now
-                seq = self._next_seq()
-                self._pings[seq] = _Ping(origin.robot_id, now, src, challenge=True)
-                self._send(Discovery(self._origin(), self._me(), 0, seq=seq, multicast=False), src)
             return
-        self._conflict(src, origin, now)
+        self.counters.rejects["own-claim"] += 1
+        if now >= self._own_challenge_at + self.config.ping_timeout:
+            # Another daemon with our id, or a forger: only a live daemon answers.
+            seq = self._nonce()
+            if len(self._pings) < MAX_PINGS:
+                self._pings[seq] = _Ping(origin.robot_id, now, src, challenge=True)
+                search = Discovery(self._origin(), self._me(), 0, seq=seq, multicast=False)
+                if self._send(search, src, to=origin.robot_id):
+                    self._own_challenge_at = now
+                else:
+                    del self._pings[seq]
         if isinstance(msg, Discovery) and msg.seq is not None:
             # Let the other daemon find us out too.
-            self._send(Response(self._origin(), msg.st, "", 0, msg.seq), src)
+            self._answer_ping(origin, msg.seq, src, now)
 
     def _conflict(self, src: Addr, origin: Origin, now: float) -> None:
         self.counters.rejects["own-id"] += 1
@@ -508,6 +641,39 @@ class Core(CoreState):
             return urlsplit(self.location).hostname
         except ValueError:
             return None
+
+    def _answer_ping(self, origin: Origin | None, seq: int, src: Addr, now: float) -> None:
+        """The compact ping reply to `seq`, for the robot that pinged (from `src`); to a robot
+        we have not proven, our own challenge rides on it when the bytes allow."""
+        to = None if origin is None else origin.robot_id
+        peer = None if to is None else self.peers.get(to)
+        reply = Response(self._origin(), self._me(), "", 0, seq)
+        # (The form its ping says it reads: the smallest answer.)
+        compact = self.config.wire_compact and origin is not None and origin.wire >= WIRE_COMPACT
+        if (
+            peer is not None
+            and (not peer.proven or not peer.reachable)
+            and peer.address == src
+            and now >= peer.challenged_at + self.config.ping_timeout
+            and len(self._pings) < MAX_PINGS
+        ):
+            ride = self._nonce()
+            self._pings[ride] = _Ping(peer.robot_id, now, src, challenge=True)
+            if self._send(replace(reply, ping=ride), src, to=to, compact=compact):
+                peer.challenged_at = now
+                self.counters.challenges += 1
+                return
+            del self._pings[ride]
+        self._send(reply, src, to=to, compact=compact)
+
+    def _remember_search(self, msg: Discovery, peer: Peer, src: Addr, now: float) -> None:
+        """A search from a robot not believed yet: served (by unicast) once it answers."""
+        if not msg.multicast:
+            peer.deferred = (src, None if msg.want == WANT_ALL else msg.want)
+        elif len(self._reply_to) < MAX_REPLY_TO:
+            self._reply_to[src] = peer.robot_id
+            delay = self.rng.uniform(0, min(float(msg.mx), self.config.reply_delay_max))
+            self._reply_at = min(self._reply_at, now + delay)
 
     # -- message handlers ------------------------------------------------------------------
 
@@ -525,11 +691,12 @@ class Core(CoreState):
         if peer is not None:
             self._heard(peer, msg.origin, src, now, None, False)
         if msg.seq is not None and answer_ping:
-            # A ping (anyone's: a robot whose claims we doubt must still be able to prove us):
-            # the compact reply, smaller than the ping, carrying our own ping to that peer
-            # when it would be due within half a ping interval.
-            ride = None
-            if (
+            # A ping (anyone's: a robot whose claims we doubt must still be able to prove us),
+            # if it names us: the compact reply, carrying our own ping to that peer when it
+            # would be due within half a ping interval.
+            if msg.st != self._me():
+                self.counters.rejects["other-target"] += 1
+            elif (
                 peer is not None
                 and peer.reachable
                 and peer.proven
@@ -538,7 +705,11 @@ class Core(CoreState):
                 and not any(p.robot_id == peer.robot_id for p in self._pings.values())
             ):
                 ride = self._new_ping(peer, now, src)
-            self._send(Response(self._origin(), msg.st, "", 0, msg.seq, ride), src)
+                reply = Response(self._origin(), msg.st, "", 0, msg.seq, ride)
+                if not self._send(reply, src, to=peer.robot_id):
+                    del self._pings[ride]
+            else:
+                self._answer_ping(msg.origin, msg.seq, src, now)
         if peer is None:
             return
         told = self._advertised()[0]
@@ -580,65 +751,93 @@ class Core(CoreState):
             if not self._fetch_budget.take(dst[0], now, 1 / (FETCH_SETS_PER_S * len(parts))):
                 self.counters.rejects["fetch-limited"] += 1
                 return
-            self._emit(catch_up, dst, "update")
+            self._emit(catch_up, dst, "update", to=peer.robot_id)
             return
-        wanted = len(parts) if only is None else sum(1 for i in only if i < len(parts))
+        if only is not None and any(i >= len(parts) for i in only):
+            only = None  # numbered in another form of the set: send it whole
+        wanted = len(parts) if only is None else len(only)
         # Per address, at most FETCH_SETS_PER_S whole sets a second.
         if not parts or not self._fetch_budget.take(
             dst[0], now, wanted / (FETCH_SETS_PER_S * len(parts))
         ):
             self.counters.rejects["fetch-limited"] += 1
             return
-        self._send_update_parts(dst, now, only=only)
+        self._send_update_parts(dst, now, only=only, to=peer.robot_id)
 
     def _on_byebye(self, peer: Peer) -> None:
-        if not peer.proven:
+        if not peer.known:
             self._forget(peer)
             return
         peer.byebye_boot = peer.boot_id
         if peer.reachable:
             peer.reachable = False
             peer.next_ping = math.inf
-        peer.fetch = None
+        self._drop_fetch(peer)
         self._dirty.add(peer.robot_id)
 
     def _on_update(self, peer: Peer, msg: Update, now: float) -> None:
+        """A part of a set, or a delta.  A set not believed yet (its robot has not confirmed
+        it in an answer to us) is held, within bounds, and applied once it is."""
         o = msg.origin
-        if (o.boot_id, o.version, o.digest) != (peer.boot_id, peer.version, peer.digest):
-            return  # an older set than the one announced since; the newer will come
-        if peer.current:
+        triple = (o.boot_id, o.version, o.digest)
+        believed = peer.proven and triple == (peer.boot_id, peer.version, peer.digest)
+        if believed and peer.current:
             return  # a duplicate, or parts of a set we completed already
         if msg.base is not None:
-            self._apply_delta(peer, msg)
+            if believed:
+                self._apply_delta(peer, msg)
+            elif msg.packed is None or len(msg.packed) <= wire.MAX_DATAGRAM:
+                peer.held_delta = msg  # (one a robot: the latest)
             return
         f = peer.fetch
-        if f is None or (f.boot_id, f.version, f.digest) != (o.boot_id, o.version, o.digest):
-            f = peer.fetch = _Fetch(
-                o.boot_id, o.version, o.digest, retry_at=now + self.config.fetch_wait
-            )
+        if f is None or (f.boot_id, f.version, f.digest) != triple:
+            if f is not None and not believed and (f.boot_id, f.version) >= triple[:2]:
+                return  # an older or competing claim than the set being assembled
+            self._drop_fetch(peer)
+            wait = self.config.fetch_wait if believed else math.inf
+            f = peer.fetch = _Fetch(*triple, retry_at=now + wait)
         if f.parts == 0:
             f.parts = msg.parts
         elif f.parts != msg.parts:
             self.counters.rejects["inconsistent-parts"] += 1
-            peer.fetch = None
+            self._drop_fetch(peer)
             return
-        share = max(UNPROVEN_PARTS_MIN, UNPROVEN_PARTS // max(1, self._unproven))
-        if not peer.proven and len(f.got) >= share and msg.part not in f.got:
-            self.counters.rejects["unproven-parts"] += 1
+        if msg.part in f.got:
             return
+        if not believed:
+            share = max(UNPROVEN_PARTS_MIN, UNPROVEN_PARTS // max(1, self._unproven))
+            size = sum(wire.service_json_size(s) for s in msg.services)
+            if len(f.got) >= share or self._held_bytes + size > UNPROVEN_BYTES:
+                self.counters.rejects["unproven-parts"] += 1
+                return
+            f.size += size
+            self._held_bytes += size
         f.got[msg.part] = msg.services
         if f.missing():
             # More parts are normally right behind this one; ask only if they do not come.
-            f.retry_at = max(f.retry_at, now + self.config.fetch_wait)
+            if believed:
+                f.retry_at = max(f.retry_at, now + self.config.fetch_wait)
             return
+        if believed:
+            self._complete(peer)
+
+    def _complete(self, peer: Peer) -> None:
+        """The set being assembled is whole and believed: the peer's services now."""
+        f = peer.fetch
+        assert f is not None
         services = tuple(s for i in range(f.parts) for s in f.got[i])
-        peer.fetch = None
-        if service_digest(services) != o.digest:
+        self._drop_fetch(peer)
+        if service_digest(services) != f.digest:
             self.counters.rejects["bad-digest"] += 1
             return
         peer.services = services
-        peer.held = (o.boot_id, o.version, o.digest)
+        peer.held = (f.boot_id, f.version, f.digest)
         self._dirty.add(peer.robot_id)
+
+    def _drop_fetch(self, peer: Peer) -> None:
+        if peer.fetch is not None:
+            self._held_bytes -= peer.fetch.size
+            peer.fetch = None
 
     def _apply_delta(self, peer: Peer, msg: Update) -> None:
         """Turn the set we hold into the announced one, from the delta's step whose base we
@@ -680,26 +879,16 @@ class Core(CoreState):
             return
         peer.services = services
         peer.held = (o.boot_id, o.version, o.digest)
-        peer.fetch = None
+        self._drop_fetch(peer)
         self._dirty.add(peer.robot_id)
 
-    def _on_response(self, peer: Peer, msg: Response, src: Addr, now: float) -> None:
+    def _on_response(self, peer: Peer, msg: Response, src: Addr, now: float, proof: bool) -> None:
         if msg.seq is None:
             return
         if msg.ping is not None:  # the peer's ping, riding on its reply to ours
-            self._send(Response(self._origin(), self._me(), "", 0, msg.ping), src)
-        pending = self._pings.pop(msg.seq, None)
-        if pending is None:
-            self._on_beacon_reply(peer, msg.seq, src, now)
+            self._answer_ping(msg.origin, msg.ping, src, now)
+        if not proof:
             return
-        if pending.robot_id != peer.robot_id or pending.addr != src:
-            return
-        self._round_trip(peer, now - pending.sent, src, now)
-        if not peer.proven:
-            peer.proven = True
-            self._unproven -= 1
-            self._schedule_ping(peer, now)
-            self._dirty.add(peer.robot_id)
         if peer.deferred is not None:
             dst, only = peer.deferred
             peer.deferred = None
@@ -707,16 +896,6 @@ class Core(CoreState):
                 self._serve(peer, dst, only, now)
         if peer.fetch is not None and peer.fetch.retry_at == math.inf:
             peer.fetch.retry_at = now  # held back while it was unproven
-
-    def _on_beacon_reply(self, peer: Peer, seq: int, src: Addr, now: float) -> None:
-        """A peer answered one of our beacons (a ping to all): a round trip to it."""
-        group = self._group_pings.get(seq)
-        if group is None or group.targets.get(peer.robot_id) != src:
-            return
-        del group.targets[peer.robot_id]
-        if not group.targets:
-            del self._group_pings[seq]
-        self._round_trip(peer, now - group.sent, src, now)
 
     def _round_trip(self, peer: Peer, sample: float, src: Addr, now: float) -> None:
         peer.rtt = sample if peer.rtt is None else 0.8 * peer.rtt + 0.2 * sample

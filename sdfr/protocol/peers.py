@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from sdfr.auth import ReplayWindow
 from sdfr.model import Service
 from sdfr.protocol.config import Addr
+from sdfr.wire import Update
 
 
 @dataclass(slots=True)
@@ -22,6 +23,8 @@ class _Fetch:
     got: dict[int, tuple[Service, ...]] = field(default_factory=dict)
     retry_at: float = 0.0
     backoff: float = 0.0
+    #: Bytes of the services' JSON held (what an unbelieved set costs the budget).
+    size: int = 0
 
     def missing(self) -> tuple[int, ...]:
         return tuple(i for i in range(self.parts) if i not in self.got)
@@ -59,8 +62,15 @@ class Peer:
     version: int
     digest: str
     reachable: bool = False
-    #: Answered a ping of ours, or spoke with a valid seal: saved, listed and pinged.
+    #: Answered a ping of ours in this run, at its current boot: its boot, version, digest and
+    #: address are what its answers said.  Only then is it listed, pinged and fetched from.
     proven: bool = False
+    #: In the history map (saved): proven at some time, in this run or an earlier one.
+    known: bool = False
+    #: When it last answered a ping of ours (the proof that keeps it listed reachable).
+    answered_at: float = -math.inf
+    #: When it last said something not believed yet (challenged until it answers or stops).
+    claimed_at: float = -math.inf
     #: (boot, version, digest) the `services` below belong to; None when we hold no set.
     held: tuple[int, int, str] | None = None
     services: tuple[Service, ...] = ()
@@ -79,6 +89,8 @@ class Peer:
     wire: int = 1
     #: `sdfr.wire.delta_dictionary` of the set we hold, for its packed deltas: (held, bytes).
     dictionary: tuple[tuple[int, int, str], bytes] | None = None
+    #: The last delta announcing a set not yet believed, applied if its answer confirms it.
+    held_delta: Update | None = None
 
     @property
     def current(self) -> bool:

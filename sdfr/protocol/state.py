@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import random
 from collections import OrderedDict
@@ -13,16 +14,22 @@ from dataclasses import replace
 
 from sdfr import auth, wire
 from sdfr.auth import OPEN, Keyring
-from sdfr.limits import KeyedBuckets, TokenBucket
+from sdfr.limits import ByteCredit, KeyedBuckets, TokenBucket
 from sdfr.model import Service, service_digest
 from sdfr.protocol.config import (
+    ADDR_CHALLENGE_BURST,
+    ADDR_CHALLENGE_RATE,
     CHALLENGE_BURST,
+    CHALLENGE_GAP,
     CHALLENGE_RATE,
+    CREDIT_CAP,
     DELTA_STEPS,
+    MAX_PINGS,
     MAX_SOURCES,
-    MCAST_SET_GAP,
     PLAIN_BURST,
     PLAIN_RATE,
+    PLAIN_SOURCE_BURST,
+    PLAIN_SOURCE_RATE,
     REPAIR_MEMORY,
     SOURCE_BURST,
     SOURCE_RATE,
@@ -32,11 +39,15 @@ from sdfr.protocol.config import (
     answers_beacon,
 )
 from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _GroupPing, _Ping
-from sdfr.wire import WANT_ALL, WIRE_COMPACT, WIRE_FULL, Alive, Discovery, Origin, Update
+from sdfr.wire import MAX_SEQ, WANT_ALL, WIRE_COMPACT, WIRE_FULL, Alive, Discovery, Origin, Update
 
 
 class CoreState:
-    """One robot's protocol state, and the sending side of it."""
+    """One robot's protocol state, and the sending side of it.
+
+    `rng` draws the jitter and the pings' nonces: outside tests it must be unpredictable
+    (sdfrd passes `random.SystemRandom()`), since a nonce an outsider can guess proves nothing.
+    """
 
     def __init__(
         self,
@@ -57,6 +68,7 @@ class CoreState:
         self.services: tuple[Service, ...] = tuple(services)
         self.digest = service_digest(self.services)
         self.keyring = keyring
+        self.subnet: ipaddress.IPv4Network | ipaddress.IPv6Network | None = None
         self.peers: dict[str, Peer] = {}
         self._unproven = 0  # peers not proven (of self.peers)
         self.counters = Counters()
@@ -81,16 +93,27 @@ class CoreState:
         #: Searchers waiting for our set: address -> robot id.
         self._reply_to: dict[Addr, str] = {}
         self._last_set_multicast = -math.inf
+        #: Pings in flight, by nonce (their sequence number).
         self._pings: dict[int, _Ping] = {}
-        self._ping_seq = rng.randrange(1 << 30)
-        #: Which turn of peers our last beacon asked to answer (`answers_beacon`).
+        #: Which turn of peers our last beacon asked to answer (`answers_beacon`), and of how
+        #: many turns.
         self._beacon_turn = 0
+        self._turns = 1
         self._sent_seals = 0
         self._sources = KeyedBuckets(SOURCE_RATE, SOURCE_BURST, MAX_SOURCES)
         self._fetch_budget = KeyedBuckets(1.0, 1.0, MAX_SOURCES)
         self._challenge_budget = TokenBucket(CHALLENGE_RATE, CHALLENGE_BURST)
+        self._addr_challenges = KeyedBuckets(ADDR_CHALLENGE_RATE, ADDR_CHALLENGE_BURST, MAX_SOURCES)
         self._plain_budget = TokenBucket(PLAIN_RATE, PLAIN_BURST)
+        self._plain_sources = KeyedBuckets(PLAIN_SOURCE_RATE, PLAIN_SOURCE_BURST, MAX_SOURCES)
+        #: What each address sent us and we did not spend on answers to it yet: all an address
+        #: that has not proven a round trip may get from us (no amplification).
+        self._credit = ByteCredit(CREDIT_CAP, MAX_SOURCES)
+        #: Bytes of services held in sets not yet believed (`UNPROVEN_BYTES` in all).
+        self._held_bytes = 0
         self._own_challenge_at = -math.inf
+        #: The time of the input being handled (what `_emit` judges proofs against).
+        self._now = 0.0
         self._parts_cache: tuple[tuple[int, int, str, str, bool], list[bytes]] | None = None
         #: The set every robot in range last heard by multicast, (version, services, digest):
         #: what everything we send names as ours and serves (a change not announced yet is
@@ -123,21 +146,18 @@ class CoreState:
         location: str | None,
         proof: bool,
     ) -> None:
-        """Record a sign of life from a peer `_gate` let through."""
-        if origin is not None:
-            if proof:
-                # The answer to a challenge: what the robot says of itself now.
-                if (origin.version, origin.digest) != (peer.version, peer.digest):
-                    peer.version, peer.digest = origin.version, origin.digest
-                    self._dirty.add(peer.robot_id)
-            elif origin.version > peer.version or (
-                origin.version == peer.version and origin.digest != peer.digest
-            ):
-                peer.version, peer.digest = origin.version, origin.digest
-            elif origin.version < peer.version:
-                # Reordered (an older announcement), or the version we hold was never the
-                # robot's: it still shows the robot is there, and its answer will tell.
-                self._challenge(peer, src, now)
+        """Record a sign of life from a peer `_gate` let through: its datagram came from its
+        proven address (or is its answer to a ping of ours, `proof`)."""
+        if (
+            origin is not None
+            and not proof
+            and (
+                (origin.version, origin.digest) != (peer.version, peer.digest) or not peer.reachable
+            )
+        ):
+            # A change of its set, or a robot whose last answer is too old to list it: only
+            # its answer to a ping (fresh by construction) is believed.
+            self._challenge(peer, src, now)
         peer.last_heard = now
         if origin is not None and origin.wire != peer.wire:
             peer.wire = origin.wire
@@ -145,19 +165,37 @@ class CoreState:
                 peer.next_ping = math.inf  # its beacon pings stand in for unicast ones now
         if origin is not None:
             self._wire_at[src] = origin.wire
-        if peer.address != src:
-            peer.address = src
-            self._dirty.add(peer.robot_id)
         if location and location != peer.location:
             peer.location = location
+            self._dirty.add(peer.robot_id)
+
+    def _prove(self, peer: Peer, origin: Origin, src: Addr, now: float) -> None:
+        """The peer answered a ping of ours from `src`: believe what it says of itself now."""
+        if origin.boot_id != peer.boot_id:
+            self._new_boot(peer, origin)
+        elif (origin.version, origin.digest) != (peer.version, peer.digest):
+            peer.version, peer.digest = origin.version, origin.digest
+            self._dirty.add(peer.robot_id)
+        peer.byebye_boot = None
+        peer.answered_at = now
+        # Answered: the next claim (a change right behind this one) may be asked about soon,
+        # not a ping timeout later; CHALLENGE_GAP bounds what forged claims cost it.
+        peer.challenged_at = min(peer.challenged_at, now - self.config.ping_timeout + CHALLENGE_GAP)
+        if not peer.proven:
+            peer.proven = True
+            if not peer.known:
+                peer.known = True
+                self._unproven -= 1
+            self._dirty.add(peer.robot_id)
+        if peer.address != src:
+            peer.address = src
             self._dirty.add(peer.robot_id)
         if not peer.reachable:
             peer.reachable = True
             self.arrivals += 1
             # The ping window is kept: the pings lost while the peer was away are part of its
             # link's record, and the window slides them out as new pings settle.
-            if peer.proven:
-                self._schedule_ping(peer, now)
+            self._schedule_ping(peer, now)
             self._dirty.add(peer.robot_id)
 
     def _new_boot(self, peer: Peer, origin: Origin) -> None:
@@ -165,8 +203,9 @@ class CoreState:
         peer.boot_id, peer.version, peer.digest = origin.boot_id, origin.version, origin.digest
         peer.held = None
         peer.services = ()
-        peer.fetch = None
+        peer.dictionary = None
         peer.byebye_boot = None
+        peer.window.reset()
         self._dirty.add(peer.robot_id)
 
     def _want_current(self, peer: Peer, now: float, *, soon: bool) -> None:
@@ -180,13 +219,24 @@ class CoreState:
             peer.fetch = None
             self._dirty.add(peer.robot_id)
             return
+        held = peer.held_delta
+        if held is not None:
+            peer.held_delta = None
+            o = held.origin
+            if (o.boot_id, o.version, o.digest) == (peer.boot_id, peer.version, peer.digest):
+                self._apply_delta(peer, held)
+                if peer.current:
+                    return
         f = peer.fetch
         if f is not None and (f.boot_id, f.version, f.digest) == (
             peer.boot_id,
             peer.version,
             peer.digest,
         ):
+            if f.parts and not f.missing():
+                self._complete(peer)  # held while the set was not believed
             return  # already fetching this one
+        self._drop_fetch(peer)
         peer.fetch = _Fetch(peer.boot_id, peer.version, peer.digest)
         if soon:
             peer.fetch.retry_at = now + self.config.fetch_wait
@@ -200,6 +250,14 @@ class CoreState:
             return
         if not peer.proven:
             f.retry_at = math.inf  # asked once it answers its challenge
+            return
+        if f.parts and not f.missing():
+            # Whole already (held while not believed): it is the peer's set iff it is the one
+            # the peer's answers named.
+            if (f.boot_id, f.version, f.digest) == (peer.boot_id, peer.version, peer.digest):
+                self._complete(peer)
+            else:
+                f.retry_at = math.inf
             return
         want: wire.Want = f.missing() if f.parts else WANT_ALL
         have = None
@@ -217,22 +275,38 @@ class CoreState:
                 have=have,
             ),
             peer.address,
+            to=peer.robot_id,
         )
         f.backoff = min(self.config.beacon_interval, max(2 * f.backoff, self.config.fetch_wait * 2))
         f.retry_at = now + f.backoff * self.rng.uniform(0.8, 1.2)
 
     def _ping(
         self, peer: Peer, now: float, *, addr: Addr | None = None, challenge: bool = False
-    ) -> None:
+    ) -> bool:
+        """Ping `peer` (at `addr`); False if it could not go (see `_emit`)."""
         dst = peer.address if addr is None else addr
+        if len(self._pings) >= MAX_PINGS:
+            self.counters.challenges_limited += 1
+            return False
         seq = self._new_ping(peer, now, dst, challenge=challenge)
-        self._send(
-            Discovery(self._origin(), f"uuid:{peer.robot_id}", 0, seq=seq, multicast=False), dst
-        )
+        ping = Discovery(self._origin(), f"uuid:{peer.robot_id}", 0, seq=seq, multicast=False)
+        # (In the form the robot reads, wherever it is: a robot met at a new address gets the
+        # small ping, which its first datagram from there pays for.)
+        compact = self.config.wire_compact and peer.wire >= WIRE_COMPACT
+        if self._send(ping, dst, to=peer.robot_id, compact=compact):
+            return True
+        del self._pings[seq]
+        return False
 
-    def _next_seq(self) -> int:
-        self._ping_seq = (self._ping_seq + 1) & 0x7FFFFFFF
-        return self._ping_seq
+    def _nonce(self, turns: int = 1, turn: int = 0) -> int:
+        """A fresh random 64-bit sequence number for a ping (its answer proves the round trip
+        happened now), of the given turn (`answers_beacon`: its value modulo `turns`)."""
+        seq = self.rng.getrandbits(64)
+        if turns > 1:
+            seq = seq - seq % turns + turn
+            if seq > MAX_SEQ:
+                seq -= turns
+        return seq
 
     def _beacon_pings(self) -> bool:
         """Whether our beacons are also pings (to the peers that answer them, `_by_beacon`)."""
@@ -254,7 +328,7 @@ class CoreState:
 
     def _new_ping(self, peer: Peer, now: float, dst: Addr, *, challenge: bool = False) -> int:
         """A ping to `peer` at `dst` sent now (its sequence number); the next is a period away."""
-        seq = self._next_seq()
+        seq = self._nonce()
         self._pings[seq] = _Ping(peer.robot_id, now, dst, challenge)
         jitter = self.rng.uniform(1 - self.config.jitter, 1.0)
         if peer.proven and self._by_beacon(peer):
@@ -307,7 +381,9 @@ class CoreState:
         if dst is not None:
             return self._wire_at.get(dst, WIRE_FULL) >= WIRE_COMPACT
         return all(
-            p.wire >= WIRE_COMPACT for p in self.peers.values() if p.reachable or not p.proven
+            p.wire >= WIRE_COMPACT
+            for p in self.peers.values()
+            if p.reachable or not (p.proven or p.known)
         )
 
     def _beacon(self, now: float) -> None:
@@ -324,18 +400,18 @@ class CoreState:
             }
             if compact and len(pinged) > cfg.beacon_answers:
                 turns = min(wire.MAX_TURNS, -(-len(pinged) // max(1, cfg.beacon_answers)))
-            seq = self._next_seq()
+            self._turns = turns
+            seq = self._nonce()
             targets = pinged
             for _ in range(turns if turns > 1 else 0):
                 # The next turn in order that has peers in it, as the seq says.
                 self._beacon_turn = (self._beacon_turn + 1) % turns
-                seq = (seq + (self._beacon_turn - seq) % turns) & 0x7FFFFFFF
+                seq = self._nonce(turns, self._beacon_turn)
                 targets = {
                     rid: addr for rid, addr in pinged.items() if answers_beacon(rid, seq, turns)
                 }
                 if targets:
                     break
-            self._ping_seq = seq
             if targets:
                 self._group_pings[seq] = _GroupPing(now, targets)
             else:
@@ -368,8 +444,9 @@ class CoreState:
             if peer is not None:
                 self._serve(peer, dst, None, now)
             return
-        if now < self._last_set_multicast + MCAST_SET_GAP:
-            self._reply_at = self._last_set_multicast + MCAST_SET_GAP
+        gap = self.config.mcast_set_gap
+        if now < self._last_set_multicast + gap:
+            self._reply_at = self._last_set_multicast + gap
             return
         self._reply_to, self._reply_at = {}, math.inf
         if targets:
@@ -475,7 +552,11 @@ class CoreState:
         return self._delta(have, had, compact)
 
     def _send_update_parts(
-        self, dst: Addr | None, now: float, only: Sequence[int] | None = None
+        self,
+        dst: Addr | None,
+        now: float,
+        only: Sequence[int] | None = None,
+        to: str | None = None,
     ) -> None:
         if dst is None:
             # A multicast set answers every pending search too.
@@ -486,10 +567,19 @@ class CoreState:
         parts = self._update_parts(self._compact_for(dst))
         for i, data in enumerate(parts):
             if only is None or i in only:
-                self._emit(data, dst, "update")
+                self._emit(data, dst, "update", to=to)
 
-    def _send(self, msg: wire.Message, dst: Addr | None, *, compact: bool | None = None) -> None:
-        """Encode and send `msg`: compact when `_compact_for(dst)` (or as told)."""
+    def _send(
+        self,
+        msg: wire.Message,
+        dst: Addr | None,
+        *,
+        compact: bool | None = None,
+        to: str | None = None,
+        answer: bool = False,
+    ) -> bool:
+        """Encode and send `msg` (to robot `to` at `dst`; see `_emit`): compact when
+        `_compact_for(dst)` (or as told)."""
         if compact is None:
             compact = self._compact_for(dst)
         if compact:
@@ -500,16 +590,43 @@ class CoreState:
         else:
             data = wire.encode(msg, group=self.config.group, port=self.config.port)
         kind = type(msg).__name__.lower()
-        self._emit(data, dst, kind)
+        return self._emit(data, dst, kind, to=to, answer=answer)
 
-    def _emit(self, data: bytes, dst: Addr | None, kind: str) -> None:
+    def _emit(
+        self,
+        data: bytes,
+        dst: Addr | None,
+        kind: str,
+        *,
+        to: str | None = None,
+        answer: bool = False,
+    ) -> bool:
+        """Send `data` to the group (`dst` None) or to robot `to` at `dst`, sealed for it when
+        the fleet signs.  While unsigned datagrams are accepted (anyone may claim any source
+        address), an address that has not proven a round trip gets no more bytes than it sent
+        us (`_credit`): False, and nothing sent, when this would be more.  `answer`: the one
+        standard answer to a plain SSDP search, which its own limits bound."""
         ring = self.keyring
         if ring.signs and ring.primary is not None:
             self._sent_seals += 1
-            data = auth.seal(data, ring.keys[ring.primary], self._sent_seals)
+            sender = self._own_host() or ""
+            target = None if dst is None else to
+            data = auth.seal(
+                data, ring.keys[ring.primary], self._sent_seals, to=target, sender=sender
+            )
+        if (
+            dst is not None
+            and not answer
+            and ring.accepts_unsigned  # (else whatever we answer was sealed from `dst` itself)
+            and not self._address_proven(dst, self._now)
+            and not self._credit.spend(dst[0], len(data))
+        ):
+            self.counters.rejects["amplification"] += 1
+            return False
         self.counters.datagrams_out[kind] += 1
         self.counters.bytes_out += len(data)
         self._out.append((data, dst))
+        return True
 
     _EMPTY = service_digest(())
 
@@ -519,6 +636,21 @@ class CoreState:
     # -- what the trust layer above provides (`Core`) ---------------------------------------
 
     def _challenge(self, peer: Peer, addr: Addr, now: float) -> bool:
+        raise NotImplementedError
+
+    def _address_proven(self, addr: Addr, now: float) -> bool:
+        raise NotImplementedError
+
+    def _own_host(self) -> str | None:
+        raise NotImplementedError
+
+    def _complete(self, peer: Peer) -> None:
+        raise NotImplementedError
+
+    def _drop_fetch(self, peer: Peer) -> None:
+        raise NotImplementedError
+
+    def _apply_delta(self, peer: Peer, msg: Update) -> None:
         raise NotImplementedError
 
     def _serve(self, peer: Peer, dst: Addr, only: tuple[int, ...] | None, now: float) -> None:

@@ -13,7 +13,7 @@ from sdfr.model import Service
 MAX_DATAGRAM = 1400
 #: Room every encoded datagram leaves for a seal (sdfr.auth): a keyed fleet then has exactly the
 #: limits of an open one, and a service accepted before a key was set still fits after.
-SEAL_RESERVE = 64
+SEAL_RESERVE = 80
 #: Largest datagram `encode` and `encode_update_parts` produce.
 MAX_ENCODED = MAX_DATAGRAM - SEAL_RESERVE
 DEFAULT_GROUP = "239.255.255.250"
@@ -24,7 +24,8 @@ SERVER = f"Linux UPnP/1.1 SDfR/{__version__}"
 MAX_FLEET = 255
 MAX_BOOT_ID = 2**31 - 1
 MAX_VERSION = 2**53
-MAX_SEQ = 2**53
+#: Sequence numbers of pings and beacons are random 64-bit nonces (a reply proves freshness).
+MAX_SEQ = 2**64 - 1
 MAX_PARTS = 255
 MAX_MAX_AGE = 86400
 #: Longest LOCATION, in UTF-8 bytes when encoding (characters when decoding).

@@ -56,7 +56,7 @@ def test_any_change_breaks_the_seal(where: str) -> None:
     elif where == "counter":
         bad = data.replace(b" 12 ", b" 13 ")
     else:
-        at = data.index(b"X-SDFR-AUTH: ") + len(b"X-SDFR-AUTH: ") + 8 + 4
+        at = data.index(b"\r\n", data.index(b"X-SDFR-AUTH: ")) - 5  # inside the mac
         bad = data[:at] + (b"A" if data[at : at + 1] != b"A" else b"B") + data[at + 1 :]
     assert bad != data
     got = auth.check(bad, Keyring.of([KEY]))
@@ -162,5 +162,36 @@ def test_replay_window_never_accepts_twice(counters: list[int]) -> None:
 
 def test_sealing_costs() -> None:
     key = secrets.token_bytes(32)
-    sealed = auth.seal(ALIVE, key, 2**53)
+    sealed = auth.seal(ALIVE, key, 2**53, to="robot-8", sender="10.3.0.7")
     assert len(sealed) - len(ALIVE) == auth.SEAL_LINE_MAX <= wire.SEAL_RESERVE
+
+
+def test_a_seal_is_bound_to_its_recipient_and_its_senders_address() -> None:
+    """A unicast sealed for one robot is refused by another, before any MAC ("not-for-me");
+    a datagram arriving from another address than its sender sealed is refused ("relayed");
+    a multicast is for every robot of the fleet, from its sender's address only."""
+    ring = Keyring.of([KEY])
+    unicast = auth.seal(ALIVE, KEY, 3, to="robot-8", sender="10.3.0.7")
+    assert auth.check(unicast, ring, me="robot-8", src="10.3.0.7") == Sealed(
+        auth.key_id(KEY), 3, fleet=False
+    )
+    other = auth.check(unicast, ring, me="robot-9", src="10.3.0.7")
+    assert isinstance(other, Reject) and other.reason == "not-for-me"
+    relayed = auth.check(unicast, ring, me="robot-8", src="10.3.0.66")
+    assert isinstance(relayed, Reject) and relayed.reason == "relayed"
+    multicast = auth.seal(ALIVE, KEY, 4, sender="10.3.0.7")
+    assert auth.check(multicast, ring, me="robot-9", src="10.3.0.7") == Sealed(
+        auth.key_id(KEY), 4, fleet=True
+    )
+    moved = auth.check(multicast, ring, me="robot-9", src="10.3.0.66")
+    assert isinstance(moved, Reject) and moved.reason == "relayed"
+    # The hints only save work: rewriting them to match does not get past the MAC.
+    forged = multicast.replace(b"X-SDFR-AUTH: ", b"X-SDFR-AUTH: ")
+    line_at = forged.index(b"X-SDFR-AUTH: ")
+    route_at = forged.index(b" ", forged.index(b" ", line_at + 13) + 1) + 1
+    tag = forged[route_at + 2 : route_at + 6]
+    want = auth.seal(ALIVE, KEY, 4, sender="10.3.0.66")
+    want_tag = want[want.index(b"*:") + 2 : want.index(b"*:") + 6]
+    forged = forged.replace(b"*:" + tag, b"*:" + want_tag)
+    got = auth.check(forged, ring, me="robot-9", src="10.3.0.66")
+    assert isinstance(got, Reject) and got.reason == "bad-mac"

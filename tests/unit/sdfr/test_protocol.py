@@ -103,9 +103,11 @@ def test_indicator_keeps_the_pings_lost_in_an_outage_and_recovers() -> None:
     net.merge()
     net.wait_until(lambda: net.sees("r1", "r2"), 2 * BEACON)
     # Back in range, the window still holds the pings lost while apart: the indicator starts
-    # from there and climbs as new pings succeed, rather than jumping back to 1.0.
+    # from there (plus the answered ping that listed it again) and climbs as new pings
+    # succeed, rather than jumping back to 1.0.
     peer = net.nodes["r1"].core.peers["r2"]
-    assert peer.indicator == fallen
+    assert peer.indicator is not None
+    assert fallen <= peer.indicator <= fallen + 1 / len(peer.pings) < 1.0
     net.run_for(3 * BEACON)
     assert peer.indicator is not None and fallen < peer.indicator < 1.0
 
@@ -450,8 +452,10 @@ def test_a_delta_without_its_base_is_caught_up_by_unicast() -> None:
     # ... and got what changed since, in one datagram, not the set's 3 parts.
     r2 = net.nodes["r2"].addr
     to_r2 = [d for t, d, dst in net.nodes["r1"].sent if t >= t0 and dst == r2]
+    # (r1's answers to r2's pings may tell it of version 2 first: then one catch-up to 2, and
+    # the multicast delta 2 -> 3 does the rest.)
     caught = [d for d in to_r2 if kind_of(d) == "delta"]
     assert len(caught) == 1 and not [d for d in to_r2 if kind_of(d) == "update"]
     msg = wire.decode(caught[0])
-    assert isinstance(msg, wire.Update) and msg.base == 1 and msg.origin.version == 3
+    assert isinstance(msg, wire.Update) and msg.base == 1 and msg.origin.version in (2, 3)
     assert len(caught[0]) < sum(map(len, net.nodes["r1"].core._update_parts(True))) / 2

@@ -94,7 +94,10 @@ def test_a_keyed_fleet_converges_and_seals_every_datagram() -> None:
     for n in names:
         c = net.nodes[n].core.counters
         assert c.verified[auth.key_id(K1)] > 0
-        assert not c.rejects, c.rejects
+        # Nothing refused; only what each robot heard of another before that one answered
+        # its first challenge was not believed yet (a handful a peer).
+        assert set(c.rejects) <= {"unproven"}, c.rejects
+        assert c.rejects["unproven"] <= 8 * (len(names) - 1), c.rejects
 
 
 def test_nothing_an_outsider_forges_changes_a_keyed_robots_view() -> None:
@@ -137,11 +140,16 @@ def test_nothing_an_outsider_forges_changes_a_keyed_robots_view() -> None:
     for expect, data in forgeries.items():
         for name in ("r1", "r3"):
             rejects = net.nodes[name].core.counters.rejects
+            # From r2's address (a forged source address) it is refused for what it is ...
             was = rejects[expect.strip()]
-            # from the outsider's own address and from r2's (a forged source address)
-            net.inject(name, data, OUTSIDER)
             net.inject(name, data, net.nodes["r2"].addr)
-            assert rejects[expect.strip()] == was + 2, (expect, name, dict(rejects))
+            assert rejects[expect.strip()] == was + 1, (expect, name, dict(rejects))
+            # ... and from the outsider's own address as well, or as a relay (a seal names
+            # the address its sender sent from).
+            reason = "relayed" if expect in ("bad-mac", "replay") else expect.strip()
+            was = rejects[reason]
+            net.inject(name, data, OUTSIDER)
+            assert rejects[reason] == was + 1, (expect, reason, name, dict(rejects))
     net.run_for(0.5)
     after = snapshot(net)
     assert after == before
@@ -153,14 +161,16 @@ def test_a_replayed_alive_does_not_bring_back_a_dead_robot() -> None:
     names = fleet(net, 3, n_services=5, keyring=keyed())
     net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
     net.run_for(2 * BEACON)
-    captured = [d for _, d, dst in net.nodes["r3"].sent if dst is None]
+    # What r3 multicast once r1 had proven it (and so took its counters in).
+    since = net.nodes["r1"].core.peers["r3"].first_seen + BEACON
+    captured = [d for t, d, dst in net.nodes["r3"].sent if dst is None and t >= since]
     net.kill("r3")
     net.wait_until(lambda: not net.sees("r1", "r3"), 3 * BEACON + 0.5)
     for data in captured:
         net.inject("r1", data, net.nodes["r3"].addr)
     net.run_for(2 * BEACON)
     assert not net.sees("r1", "r3")
-    assert net.nodes["r1"].core.counters.rejects["replay"] >= len(captured) - 1
+    assert net.nodes["r1"].core.counters.rejects["replay"] >= len(captured) >= 2
 
 
 def test_an_open_fleet_does_not_bring_a_dead_robot_back_elsewhere() -> None:
@@ -339,10 +349,15 @@ def test_a_forged_version_does_not_pin_a_robot() -> None:
     data = wire.encode(Update(origin, "http://10.1.0.66/", 30, 0, 1, (map_server,)))
     net.inject_all(data, OUTSIDER)  # from the outsider's address: not even looked at
     assert net.all_see_all(names)
-    net.inject_all(data, r2.addr)  # from r2's address: believed, for a while
-    assert net.nodes["r1"].core.peers["r2"].services == (map_server,)
-    took = net.wait_until(lambda: net.all_see_all(names), timeout=BEACON + 0.5)
-    assert took <= BEACON + 0.5
+    # From r2's address: not believed either (r2's answer to the challenge it draws names
+    # its true version), so r2's services never leave anyone's view.
+    views = {x: net.nodes[x].core.peers["r2"].services for x in ("r1", "r3")}
+    for _ in range(5):
+        net.inject_all(data, r2.addr)
+        for _ in range(20):
+            net.run_for(BEACON / 20)
+            assert {x: net.nodes[x].core.peers["r2"].services for x in views} == views
+    assert net.all_see_all(names)
     # and r2's own changes are seen again, as usual
     net.set_services("r2", 2, services("r2", 6))
     net.wait_until(lambda: net.all_see_all(names), timeout=0.5)
