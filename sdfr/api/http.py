@@ -28,13 +28,24 @@ MAX_LINE = 8190
 MAX_HEADERS = 100
 #: Most bytes a request's head (request line and headers) may have.
 MAX_HEAD = 64 * 1024
+#: Longest Content-Length (digits) and chunk size (hex digits) read as a number: anything
+#: longer is far over any body limit, and Python's int() refuses over 4,300 digits.
+_MAX_DIGITS = 18
+_HEX_SIZE = re.compile(rb"[0-9A-Fa-f]{1,16}")
+_VERSION = re.compile(rb"HTTP/[0-9]\.[0-9]")
+#: After an error answer the connection closes; what the client is still sending is read
+#: (up to this many bytes and seconds) first, so that the close does not reset the
+#: connection and destroy the answer before the client has read it.
+LINGER_BYTES = 1 << 20
+LINGER_SECONDS = 2.0
 REASONS = {
     100: "Continue", 200: "OK", 201: "Created", 204: "No Content", 400: "Bad Request",
-    403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed", 408: "Request Timeout",
-    409: "Conflict", 411: "Length Required", 413: "Payload Too Large", 415:
-    "Unsupported Media Type", 422: "Unprocessable Content", 431:
-    "Request Header Fields Too Large", 500: "Internal Server Error", 503:
-    "Service Unavailable", 505: "HTTP Version Not Supported", 507: "Insufficient Storage",
+    401: "Unauthorized", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed",
+    408: "Request Timeout", 409: "Conflict", 411: "Length Required", 413:
+    "Payload Too Large", 414: "URI Too Long", 415: "Unsupported Media Type", 422:
+    "Unprocessable Content", 429: "Too Many Requests", 431: "Request Header Fields Too Large",
+    500: "Internal Server Error", 503: "Service Unavailable", 505:
+    "HTTP Version Not Supported", 507: "Insufficient Storage",
 }  # fmt: skip
 #: The methods HTTP parsers know (llhttp's list): one the API does not serve is a 405 naming
 #: what is allowed; any other token is a malformed request (400).
@@ -238,8 +249,11 @@ class Request:
             self._chunked = True
         elif "Content-Length" in headers:
             value = headers["Content-Length"].strip()
-            if not value.isdigit():
-                raise HttpError(400, "Content-Length is not a number")
+            # (isascii: "²" and other digits of Unicode pass isdigit(), not int())
+            if not (value.isascii() and value.isdigit()):
+                raise HttpError(400, "Content-Length is not a number (digits 0-9 only)")
+            if len(value) > _MAX_DIGITS:
+                raise HttpError(413, f"Content-Length {value[:20]}... is over any body limit")
             self._length = int(value)
 
     @property
@@ -380,6 +394,8 @@ class _Connection:
         self.busy = False
         #: The client closed its side (seen while a stream was being written).
         self.gone = False
+        #: An error answer ended it: what the client still sends is read before closing.
+        self.linger = False
 
     async def send(self, data: bytes) -> None:
         if self.gone or self.writer.is_closing():
@@ -395,6 +411,9 @@ class _Connection:
                     head = await asyncio.wait_for(self._read_head(), runner.keepalive_timeout)
                 except (asyncio.TimeoutError, ConnectionError, asyncio.IncompleteReadError):
                     return  # idle, half-sent, or gone
+                except HttpError as exc:  # a head that cannot be read: say why, then close
+                    await self._refuse(exc)
+                    return
                 if head is None:
                     return
                 self.busy = True
@@ -404,20 +423,53 @@ class _Connection:
                     self.busy = False
         except ConnectionError:
             pass
+        except Exception:  # a bug: logged, and the connection closed (never the server)
+            log.exception("connection from %s failed", self.remote)
         finally:
+            if self.linger and not runner.closing:
+                await self._linger()
             with contextlib.suppress(Exception):
                 self.writer.close()
 
     async def _read_head(self) -> bytes | None:
         try:
             head = await self.reader.readuntil(b"\r\n\r\n")
+            while not head.strip(b"\r\n"):  # empty lines between requests: no request
+                head = await self.reader.readuntil(b"\r\n\r\n")
         except asyncio.IncompleteReadError as exc:
             if exc.partial.strip():
                 raise HttpError(400, "the request ended before its headers did") from None
             return None
         except asyncio.LimitOverrunError:
+            # No end of the head within MAX_HEAD: is it the request line that has no end?
+            start = (await self.reader.read(MAX_LINE + 4)).lstrip(b"\r\n")
+            if start and b"\n" not in start:
+                raise HttpError(414, f"the request line is longer than {MAX_LINE} bytes") from None
             raise HttpError(431, f"the request's head is longer than {MAX_HEAD} bytes") from None
         return head
+
+    async def _refuse(self, exc: HttpError) -> None:
+        """Answer what could not be read as a request, and end the connection."""
+        log.debug("%s from %s: %s", exc.status, self.remote, exc.message)
+        self.keep_alive = False
+        self.linger = True
+        await self.send(self._answer(self.runner.error_answer(exc.status, exc.message), None))
+
+    async def _linger(self) -> None:
+        """Stop sending, then read (and drop) what the client still sends, up to LINGER_BYTES
+        and LINGER_SECONDS: closing with unread data would reset the connection, and the
+        client could lose the answer it was sent."""
+        loop = asyncio.get_running_loop()
+        end = loop.time() + LINGER_SECONDS
+        left = LINGER_BYTES
+        with contextlib.suppress(Exception):
+            if self.writer.can_write_eof():
+                self.writer.write_eof()
+            while left > 0 and (wait := end - loop.time()) > 0:
+                data = await asyncio.wait_for(self.reader.read(65536), wait)
+                if not data:
+                    return
+                left -= len(data)
 
     def _parse(self, head: bytes) -> Request:
         lines = head[:-4].split(b"\r\n")
@@ -426,7 +478,7 @@ class _Connection:
         if not lines:
             raise HttpError(400, "malformed HTTP request: empty")
         if len(lines[0]) > MAX_LINE:
-            raise HttpError(400, f"the request line is longer than {MAX_LINE} bytes")
+            raise HttpError(414, f"the request line is longer than {MAX_LINE} bytes")
         parts = lines[0].split(b" ")
         if len(parts) != 3 or not parts[2].startswith(b"HTTP/"):
             raise HttpError(400, "malformed HTTP request: not a request line")
@@ -436,7 +488,9 @@ class _Connection:
         if method not in self.runner.methods:
             raise HttpError(400, f"unknown method {method[:20].decode('latin-1')!r}")
         if version not in (b"HTTP/1.1", b"HTTP/1.0"):
-            raise HttpError(505, f"HTTP version {version[:20].decode('latin-1')} not supported")
+            if not _VERSION.fullmatch(version):
+                raise HttpError(400, "malformed HTTP request: not an HTTP version")
+            raise HttpError(505, f"HTTP version {version.decode()} not supported")
         if not target.startswith(b"/"):
             raise HttpError(400, "malformed HTTP request: the target is not a path")
         if len(lines) - 1 > MAX_HEADERS:
@@ -464,14 +518,17 @@ class _Connection:
         try:
             request = self._parse(head)
         except HttpError as exc:
-            log.debug("%s from %s: %s", exc.status, self.remote, exc.message)
-            self.keep_alive = False
-            await self.send(self._answer(runner.error_answer(exc.status, exc.message), None))
+            await self._refuse(exc)
+            return
+        except Exception:  # (a bug of the parser: still an answer, not a closed connection)
+            log.exception("a request from %s could not be parsed", self.remote)
+            await self._refuse(HttpError(400, "malformed HTTP request"))
             return
         try:
             response = await runner.app.handle(request)
         except HttpError as exc:  # the body could not be read
             self.keep_alive = False
+            self.linger = True
             response = runner.error_answer(exc.status, exc.message)
         except RouteError as exc:  # (no middleware answered it)
             response = runner.error_answer(exc.status, REASONS[exc.status])
@@ -486,6 +543,7 @@ class _Connection:
             response = runner.error_answer(500, "internal error")
         if response.force_close:
             self.keep_alive = False
+            self.linger = True
         if not response.prepared:
             if not await self._skip_body(request):
                 self.keep_alive = False
@@ -535,14 +593,17 @@ class _Connection:
             out = bytearray()
             while True:
                 line = await self.reader.readuntil(b"\r\n")
-                size_text = line.split(b";", 1)[0].strip()
-                try:
-                    size = int(size_text, 16)
-                except ValueError:
-                    raise HttpError(400, "malformed chunked body") from None
+                size_text = line.split(b";", 1)[0].strip(b" \t\r\n")
+                # (int(x, 16) takes "-5", "+5", "0x5" and "5_0": a size is hex digits only)
+                if not _HEX_SIZE.fullmatch(size_text):
+                    raise HttpError(400, "malformed chunked body: a chunk size is 1-16 hex digits")
+                size = int(size_text, 16)
                 if size == 0:
-                    while (await self.reader.readuntil(b"\r\n")) != b"\r\n":
-                        pass  # trailers: ignored
+                    trailers = 0
+                    while (trailer := await self.reader.readuntil(b"\r\n")) != b"\r\n":
+                        trailers += len(trailer)  # trailers: ignored, but not without end
+                        if trailers > MAX_HEAD:
+                            raise HttpError(431, f"the trailers are over {MAX_HEAD} bytes")
                     return bytes(out)
                 if len(out) + size > limit:
                     raise HttpError(413, f"the request is too large (over {limit} bytes)")
@@ -550,9 +611,10 @@ class _Connection:
                 if await self.reader.readexactly(2) != b"\r\n":
                     raise HttpError(400, "malformed chunked body")
         except asyncio.LimitOverrunError:
-            raise HttpError(400, "malformed chunked body") from None
+            raise HttpError(400, "malformed chunked body: a line without end") from None
         except asyncio.IncompleteReadError:
-            raise ConnectionResetError("the client closed the connection mid-body") from None
+            # The client stopped sending (it may still be reading): tell it.
+            raise HttpError(400, "the request ended before its body did") from None
 
 
 class Runner:
@@ -593,6 +655,11 @@ class Runner:
             self._tasks[task] = conn
             try:
                 await conn.serve()
+            except asyncio.CancelledError:
+                if not self.closing:
+                    raise
+                # Stopping: end quietly (asyncio's streams of Python 3.11 log a cancelled
+                # connection handler as an unhandled exception).
             finally:
                 self._tasks.pop(task, None)
 

@@ -246,15 +246,16 @@ async def test_errors_before_any_handler_are_json_too(cfg: Config, store: Store)
     try:
         many = b"".join(b"X-%d: 1\r\n" % i for i in range(200))
         cases = [
-            (b"GET /neighbors?" + b"a" * 9000 + b" HTTP/1.1\r\nHost: x\r\n\r\n", "8190"),
-            (b"GET /neighbors HTTP/1.1\r\nHost: x\r\nX-Big: " + b"b" * 9000 + b"\r\n\r\n", "8190"),
-            (b"GET /neighbors HTTP/1.1\r\nHost: x\r\n" + many + b"\r\n", "headers"),
-            (b"FROB /neighbors HTTP/1.1\r\nHost: localhost\r\n\r\n", "method"),
-            (b"\x16\x03\x01\x02\x00garbage\r\n\r\n", "malformed"),
-        ]
-        for request, says in cases:
+            (b"GET /neighbors?" + b"a" * 9000 + b" HTTP/1.1\r\nHost: x\r\n\r\n", 414, "8190"),
+            (b"GET /neighbors HTTP/1.1\r\nHost: x\r\nX-Big: " + b"b" * 9000 + b"\r\n\r\n", 400,
+             "8190"),
+            (b"GET /neighbors HTTP/1.1\r\nHost: x\r\n" + many + b"\r\n", 400, "headers"),
+            (b"FROB /neighbors HTTP/1.1\r\nHost: localhost\r\n\r\n", 400, "method"),
+            (b"\x16\x03\x01\x02\x00garbage\r\n\r\n", 400, "malformed"),
+        ]  # fmt: skip
+        for request, code, says in cases:
             status, headers, raw = await asyncio.to_thread(raw_exchange, port, request)
-            assert status == 400, (request[:20], status)
+            assert status == code, (request[:20], status)
             assert headers["content-type"].startswith("application/json")
             body = json.loads(raw)
             assert set(body) == {"error", "field"} and says in body["error"], body
