@@ -9,6 +9,10 @@ answering, so an acknowledged registration is on disk and survives a power cut
 (the fsync runs in a worker thread, so the event loop never waits on the disk).
 The history map, rebuilt from the air in seconds, is not synced.
 
+Files: the state directory is made private (0700 when created; an existing one loses its
+bits for others and the group's write), and the database and its -wal and -shm are 0600,
+whatever the umask.
+
 Leases: a registration may carry a ttl; its row keeps the ttl and the Unix time it expires
 (`expires`), so a lease outlives a restart of the daemon and one that ran out while the daemon
 was down is withdrawn when it starts (`expire_overdue`).
@@ -181,17 +185,47 @@ def _dumps(obj: Any) -> str:
     return json.dumps(obj, separators=(",", ":"), ensure_ascii=False)
 
 
+#: Bits a state directory made by hand loses: everything for others, write for the group
+#: (which may be given the API socket: docs/deploy.md).
+_NOT_FOR_OTHERS = 0o027
+
+
+def _private_dir(path: Path) -> None:
+    """Create `path` (0700), or take from an existing one what others may do with it."""
+    try:
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StoreError(f"state_dir: cannot create {path}: {exc.strerror}") from None
+    with contextlib.suppress(OSError):  # (not ours to change: used as it is)
+        mode = path.stat().st_mode & 0o7777
+        if mode & _NOT_FOR_OTHERS:
+            path.chmod(mode & ~_NOT_FOR_OTHERS)
+
+
+def _private_db(path: Path) -> None:
+    """Create the database file 0600 before SQLite opens it (SQLite gives the -wal and -shm
+    it creates the database's mode), and take group and others' bits from what exists."""
+    try:
+        os.close(os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600))
+    except OSError as exc:
+        raise StoreError(f"state_dir: cannot create {path}: {exc.strerror}") from None
+    for name in ("", "-wal", "-shm", "-journal"):
+        with contextlib.suppress(OSError):
+            each = path.with_name(path.name + name)
+            mode = each.stat().st_mode & 0o7777
+            if mode & 0o077:
+                each.chmod(mode & ~0o077)
+
+
 class Store:
     """One connection to the state database; each process opens its own."""
 
     def __init__(self, state_dir: Path) -> None:
-        try:
-            state_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StoreError(f"state_dir: cannot create {state_dir}: {exc.strerror}") from None
+        _private_dir(state_dir)
         if not os.access(state_dir, os.W_OK):
             raise StoreError(f"state_dir: {state_dir} is not writable")
         self.path = state_dir / "state.db"
+        _private_db(self.path)
         try:
             self._db = sqlite3.connect(
                 self.path, timeout=10.0, isolation_level=None, check_same_thread=False
@@ -540,7 +574,12 @@ class Store:
         status = {**status, "heartbeat": time.time()}
         tmp = self.status_path.with_suffix(".tmp")
         with self._writing():
-            tmp.write_text(_dumps(status))
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
+            try:
+                os.fchmod(fd, 0o600)  # (one left by a crash may have had another mode)
+                os.write(fd, _dumps(status).encode())
+            finally:
+                os.close(fd)
             tmp.replace(self.status_path)
 
     def read_status(self) -> dict[str, object]:

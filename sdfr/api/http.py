@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import logging
 import re
+import socket
 import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from typing import Any, Generic, TypeVar, cast
@@ -711,11 +712,15 @@ class TCPSite:
 
 
 class UnixSite:
-    def __init__(self, runner: Runner, path: str) -> None:
-        self.runner, self.path = runner, path
+    """A listener on a unix socket: bound at `path`, or `sock`, bound already."""
+
+    def __init__(self, runner: Runner, path: str, sock: socket.socket | None = None) -> None:
+        self.runner, self.path, self.sock = runner, path, sock
 
     async def start(self) -> None:
-        server = await asyncio.start_unix_server(
-            self.runner._client(unix=True), self.path, limit=MAX_HEAD
-        )
+        client = self.runner._client(unix=True)
+        if self.sock is not None:
+            server = await asyncio.start_unix_server(client, sock=self.sock, limit=MAX_HEAD)
+        else:
+            server = await asyncio.start_unix_server(client, self.path, limit=MAX_HEAD)
         await self.runner._listening(server)

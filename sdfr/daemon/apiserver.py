@@ -12,6 +12,7 @@ import errno
 import logging
 import os
 import resource
+import secrets
 import socket
 import sys
 from pathlib import Path
@@ -29,6 +30,9 @@ PREFIX = "sdfrd[api]"
 SHUTDOWN_TIMEOUT = 5.0
 #: sockaddr_un's sun_path holds 108 bytes, the terminating NUL included.
 MAX_UNIX_PATH = 107
+#: Who may open the API's and the status sockets: the daemon's user and the state
+#: directory's group (docs/deploy.md).
+SOCKET_MODE = 0o660
 
 
 class StartError(Exception):
@@ -65,6 +69,37 @@ def _clear_stale_socket(path: Path) -> None:
     raise StartError(f"{path}: another API layer is serving this state directory")
 
 
+def bind_private(path: Path, kind: socket.SocketKind, mode: int = SOCKET_MODE) -> socket.socket:
+    """A unix socket bound at `path` with `mode`, which no one ever sees there with another
+    mode: it is bound in a new private (0700) directory beside `path`, given its mode, then
+    renamed into place. (Binding in place creates it with the mode the umask leaves until a
+    chmod follows; setting the umask around the bind would change it for the other layer's
+    thread too.) OSError when it cannot be."""
+    hidden = path.parent / f".s{secrets.token_hex(4)}"
+    staged = hidden / "s"
+    if len(os.fsencode(staged)) > MAX_UNIX_PATH:
+        raise StartError(
+            f"{path}: the state directory's path is too long for a unix socket in it "
+            f"({MAX_UNIX_PATH} bytes, with {len(os.fsencode(staged)) - len(os.fsencode(path))} "
+            "to spare); use a shorter --state-dir"
+        )
+    os.mkdir(hidden, 0o700)
+    sock = socket.socket(socket.AF_UNIX, kind)
+    try:
+        sock.bind(str(staged))
+        os.chmod(staged, mode)
+        os.rename(staged, path)
+    except BaseException:
+        sock.close()
+        with contextlib.suppress(OSError):
+            staged.unlink()
+        raise
+    finally:
+        with contextlib.suppress(OSError):
+            hidden.rmdir()
+    return sock
+
+
 async def _start_tcp(runner: Runner, flag: str, value: str) -> None:
     host, port = split_hostport(flag, value)
     try:
@@ -86,11 +121,11 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
         await _start_tcp(runner, "api", cfg.api)
         _clear_stale_socket(sock_path)
         try:
-            await UnixSite(runner, str(sock_path)).start()
+            listening = bind_private(sock_path, socket.SOCK_STREAM)
+            sock_bound = True
+            await UnixSite(runner, str(sock_path), sock=listening).start()
         except OSError as exc:
             raise StartError(f"{sock_path}: cannot listen: {exc.strerror or exc}") from None
-        sock_bound = True
-        os.chmod(sock_path, 0o660)
         status.start()
         log.info("serving the API on http://%s and %s", cfg.api, sock_path)
         beating = asyncio.get_running_loop().create_task(_beat())
@@ -127,13 +162,10 @@ class _StatusListener:
 
     def start(self) -> None:
         self.path.unlink(missing_ok=True)
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         try:
-            sock.bind(str(self.path))
-            os.chmod(self.path, 0o660)
-        except OSError as exc:  # (a full disk: the status file is read instead)
+            sock = bind_private(self.path, socket.SOCK_DGRAM)
+        except (OSError, StartError) as exc:  # (a full disk: the status file is read instead)
             log.warning("cannot listen for the discovery layer's status on %s: %s", self.path, exc)
-            sock.close()
             return
         sock.setblocking(False)
         asyncio.get_running_loop().add_reader(sock.fileno(), self._read)
