@@ -3,11 +3,12 @@
 Owners: the API layer writes local registrations (`local_services`, the local
 version); the discovery layer writes the history map (`peers`) and its status.
 Each reads what the other writes. WAL lets readers proceed while a writer
-commits. Commits run with synchronous=NORMAL (they survive a crash of the process);
-the API layer's writer calls `sync()` after committing registrations and before
-answering, so an acknowledged registration is on disk and survives a power cut
-(the fsync runs in a worker thread, so the event loop never waits on the disk).
-The history map, rebuilt from the air in seconds, is not synced.
+commits. Commits run with synchronous=NORMAL (they survive a crash of the process),
+but a durable one (`apply(..., durable=True)`: what the API answers 2xx for) runs
+with synchronous=FULL: SQLite fsyncs the write-ahead log before the commit becomes
+visible, so an acknowledged registration is on disk and survives a power cut, and one
+whose fsync failed was never seen by any reader (nor announced). The history map,
+rebuilt from the air in seconds, is not synced.
 
 Files: the state directory is made private (0700 when created; an existing one loses its
 bits for others and the group's write), and the database and its -wal and -shm are 0600,
@@ -185,6 +186,8 @@ def _dumps(obj: Any) -> str:
     return json.dumps(obj, separators=(",", ":"), ensure_ascii=False)
 
 
+#: PRAGMA synchronous of an ordinary commit, and of a durable one (fsynced before visible).
+_NORMAL, _FULL = 1, 2
 #: Bits a state directory made by hand loses: everything for others, write for the group
 #: (which may be given the API socket: docs/deploy.md).
 _NOT_FOR_OTHERS = 0o027
@@ -226,6 +229,7 @@ class Store:
             raise StoreError(f"state_dir: {state_dir} is not writable")
         self.path = state_dir / "state.db"
         _private_db(self.path)
+        self._synchronous = _NORMAL
         try:
             self._db = sqlite3.connect(
                 self.path, timeout=10.0, isolation_level=None, check_same_thread=False
@@ -316,13 +320,17 @@ class Store:
                 os.fsync(fd)
             finally:
                 os.close(fd)
-            if not self._dir_synced:
-                dfd = os.open(self.path.parent, os.O_RDONLY)
-                try:
-                    os.fsync(dfd)
-                finally:
-                    os.close(dfd)
-                self._dir_synced = True
+            self._sync_dir()
+
+    def _sync_dir(self) -> None:
+        """fsync the state directory once (the names of the database and its log)."""
+        if not self._dir_synced:
+            dfd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+            self._dir_synced = True
 
     def get_service(self, service_id: str) -> Service | None:
         row = self._db.execute(
@@ -330,14 +338,27 @@ class Store:
         ).fetchone()
         return None if row is None else _service_from_row(row[0])
 
-    def apply(self, ops: Sequence[Op], now: float | None = None) -> list[int | StoreError | None]:
-        """Several registration changes in one transaction (one fsync when durable), each with
-        its event: per operation the new local version (Renew: 0), None (removing, renewing or
-        expiring what is not there, or was renewed since) or the error (adding an id that
-        exists). A failed write raises StateWriteError for all. `now`: Unix time."""
+    def apply(
+        self, ops: Sequence[Op], now: float | None = None, *, durable: bool = False
+    ) -> list[int | StoreError | None]:
+        """Several registration changes in one transaction, each with its event: per operation
+        the new local version (Renew: 0), None (removing, renewing or expiring what is not
+        there, or was renewed since) or the error (adding an id that exists). A failed write
+        raises StateWriteError for all, and nothing of it is committed.
+
+        `durable`: the commit is fsynced before it is visible (one fsync for all), so that
+        what is answered afterwards is on disk; if the fsync fails, nothing was committed.
+        `now`: Unix time."""
         now = time.time() if now is None else now
         out: list[int | StoreError | None] = []
         events: list[Event] = []
+        with self._writing():
+            level = _FULL if durable else _NORMAL
+            if level != self._synchronous:
+                self._db.execute(f"PRAGMA synchronous={level}")
+                self._synchronous = level
+            if durable:
+                self._sync_dir()
         with self._writing(), self._tx():
             for op in ops:
                 if isinstance(op, Add):
@@ -599,22 +620,31 @@ class Store:
         except (sqlite3.DatabaseError, OSError) as exc:
             raise write_error(self.path.parent, exc) from None
 
+    def _commit(self) -> None:
+        """COMMIT a write transaction (with synchronous=FULL, SQLite fsyncs the log first, and
+        a failed fsync fails the commit: "disk I/O error")."""
+        self._db.execute("COMMIT")
+
     class _Tx:
-        def __init__(self, db: sqlite3.Connection, immediate: bool) -> None:
-            self._db = db
-            self._begin = "BEGIN IMMEDIATE" if immediate else "BEGIN"
+        def __init__(self, store: Store, immediate: bool) -> None:
+            self._store = store
+            self._db = store._db
+            self._immediate = immediate
 
         def __enter__(self) -> None:
-            self._db.execute(self._begin)
+            self._db.execute("BEGIN IMMEDIATE" if self._immediate else "BEGIN")
 
         def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
             if exc_type is None:
                 try:
-                    self._db.execute("COMMIT")
+                    if self._immediate:
+                        self._store._commit()
+                    else:
+                        self._db.execute("COMMIT")
                     return
                 except sqlite3.DatabaseError:
-                    # (A full disk can fail the commit itself: end the transaction, or every
-                    # later one on this connection fails too, even once there is room.)
+                    # (A full disk or a failed fsync can fail the commit itself: end the
+                    # transaction, or every later one on this connection fails too.)
                     with contextlib.suppress(sqlite3.DatabaseError):
                         self._db.execute("ROLLBACK")
                     raise
@@ -622,4 +652,4 @@ class Store:
                 self._db.execute("ROLLBACK")
 
     def _tx(self, immediate: bool = True) -> Store._Tx:
-        return Store._Tx(self._db, immediate)
+        return Store._Tx(self, immediate)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
+from pathlib import Path
 
 from sdfr.api.doors import allowed_hosts, doors
 from sdfr.api.events import EventHub, events
@@ -35,11 +37,12 @@ from sdfr.config import Config
 from sdfr.store import Store
 
 
-def create_app(cfg: Config, store: Store) -> App:
-    """The local REST API."""
+def create_app(cfg: Config, store: Store, *, writer_store: Callable[[Path], Store] = Store) -> App:
+    """The local REST API; `store` is its connection for reads, `writer_store` opens the
+    one its writer commits registrations on."""
     app = App(middlewares=[measure, errors_as_json, doors], max_body=MAX_BODY)
     hub = EventHub(store)
-    writer = Writer(cfg.state_dir, committed=hub.wake)
+    writer = Writer(cfg.state_dir, committed=hub.wake, open_store=writer_store)
     view = StoreView(store, cfg)
 
     def withdrawn(ids: list[str]) -> None:

@@ -267,22 +267,32 @@ class _Histogram:
 
 
 class Writer:
-    """Commits changes of the local registrations durably: a 201 means on disk.
+    """Commits changes of the local registrations durably: a 2xx that changed or confirmed a
+    registration means on disk, and a commit whose fsync failed changed nothing (SQLite makes
+    a durable commit visible only once its log is fsynced: `Store.apply(durable=True)`).
 
     The first request commits at once, in its own task; requests arriving meanwhile go
-    together into the next commit (group commit). The fsync that makes a commit durable runs
-    inline while the disk answers fast (under INLINE_FSYNC on average: a fraction of a
-    millisecond costs the event loop less than a trip to a thread), and in a worker thread
-    when it is slow (an SD card's fsync can take tens of milliseconds): reads go on meanwhile.
+    together into the next commit (group commit). A durable commit runs inline while the
+    disk answers fast (under INLINE_FSYNC on average: a fraction of a millisecond costs the
+    event loop less than a trip to a thread), and in a worker thread when it is slow (an SD
+    card's fsync can take tens of milliseconds): reads go on meanwhile. Only a batch of plain
+    lease renewals is not fsynced: a power cut that loses one takes its owner (a program on
+    this robot) down too, and the lease's end is all it changes.
     """
 
-    #: Average fsync time (seconds) under which fsyncs run inline.
+    #: Average durable commit time (seconds) under which they run inline.
     INLINE_FSYNC = 0.001
 
-    def __init__(self, state_dir: Path, committed: Callable[[], None] | None = None) -> None:
+    def __init__(
+        self,
+        state_dir: Path,
+        committed: Callable[[], None] | None = None,
+        open_store: Callable[[Path], Store] = Store,
+    ) -> None:
         self.state_dir = state_dir
         #: Called after each commit (the event streams have news).
         self.committed = committed
+        self._open_store = open_store
         self._store: Store | None = None
         self._queue: list[tuple[Op, asyncio.Future[int | StoreError | None]]] = []
         self._busy = False
@@ -304,17 +314,17 @@ class Writer:
     async def _drain(self) -> None:
         while self._queue:
             batch, self._queue = self._queue, []
+            ops = [op for op, _ in batch]
             try:
                 store = self._open()
-                results = store.apply([op for op, _ in batch])
-                # A renewal is not worth an fsync: a power cut that loses it takes its owner
-                # (a program on this robot) down too.
-                if not all(isinstance(op, Renew) for op, _ in batch):
+                if all(isinstance(op, Renew) and not op.set_ttl for op in ops):
+                    results = store.apply(ops)
+                else:
                     t0 = time.perf_counter()
                     if self.fsync_avg < self.INLINE_FSYNC:
-                        store.sync()
+                        results = store.apply(ops, durable=True)
                     else:
-                        await asyncio.to_thread(store.sync)
+                        results = await asyncio.to_thread(store.apply, ops, durable=True)
                     self.fsync_avg = 0.9 * self.fsync_avg + 0.1 * (time.perf_counter() - t0)
                 self.commits += 1
                 if self.committed is not None:
@@ -331,7 +341,7 @@ class Writer:
     def _open(self) -> Store:
         if self._store is None:
             try:
-                self._store = Store(self.state_dir)
+                self._store = self._open_store(self.state_dir)
             except StoreError as exc:  # e.g. the state dir became read-only
                 raise write_error(self.state_dir, exc) from None
         return self._store
