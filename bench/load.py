@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import random
+import secrets
 import socket
 import sys
 import threading
@@ -53,6 +54,8 @@ class Worker:
         self.where = (host, port)
         self.sock = self._connect()
         self.host = f"{host}:{port}".encode()
+        # One worker is one program: what it publishes is its own to unpublish.
+        self.owner = secrets.token_urlsafe(24).encode()
         self.buf = b""
 
     def _connect(self) -> socket.socket:
@@ -70,7 +73,12 @@ class Worker:
             return self._call(method, path, body)
 
     def _call(self, method: str, path: str, body: bytes | None = None) -> tuple[int, bytes, float]:
-        head = b"%s %s HTTP/1.1\r\nHost: %s\r\n" % (method.encode(), path.encode(), self.host)
+        head = b"%s %s HTTP/1.1\r\nHost: %s\r\nX-SDFR-Owner: %s\r\n" % (
+            method.encode(),
+            path.encode(),
+            self.host,
+            self.owner,
+        )
         if body is not None:
             head += b"Content-Type: application/json\r\nContent-Length: %d\r\n" % len(body)
         request = head + b"\r\n" + (body or b"")

@@ -36,7 +36,9 @@ from sdfr.calls import (
     Published,
     Renewed,
     SseParser,
+    new_owner_token,
     new_service_id,
+    request_headers,
     service_body,
     split_api,
 )
@@ -70,10 +72,15 @@ class AsyncClient:
         unix_socket: str | Path | None = None,
         timeout: float = 5.0,
         retry_delays: Sequence[float] = RETRY_DELAYS,
+        owner_token: str | None = None,
+        api_token: str | None = None,
     ) -> None:
         self.api = api
         self.timeout = timeout
         self.retry_delays = tuple(retry_delays)
+        #: What this client publishes belongs to this token (see `sdfr.client.Client`).
+        self.owner_token = owner_token or new_owner_token()
+        self.api_token = api_token
         self._unix = None if unix_socket is None else str(unix_socket)
         if self._unix is not None:
             self.where = self._unix
@@ -114,7 +121,7 @@ class AsyncClient:
         return calls.unreachable(self.where, _reason(exc), self._unix is not None)
 
     async def _exchange(self, call: Call[Any]) -> tuple[int, str, bytes]:
-        headers = {"Accept": "application/json"}
+        headers = request_headers(self.owner_token, self.api_token)
         try:
             async with self._http().request(
                 call.method, self._base + call.path, json=call.body, headers=headers
@@ -242,7 +249,7 @@ class AsyncClient:
         delay = 0.2
         timeout = aiohttp.ClientTimeout(total=None, sock_read=STREAM_IDLE, connect=self.timeout)
         while True:
-            headers = dict(STREAM_HEADERS)
+            headers = {**request_headers(self.owner_token, self.api_token), **STREAM_HEADERS}
             if cursor is not None:
                 headers["Last-Event-ID"] = str(cursor)
             try:

@@ -30,6 +30,10 @@ RENEW_EVERY = 1 / 3
 #: An event stream is given up as dead after this long without a byte (sdfrd sends a
 #: keep-alive comment every 15 s).
 STREAM_IDLE = 45.0
+#: The header a client sends its owner token in: what it publishes is its own, and only
+#: a request with the same token (or, on the unix socket, by the same user) may unpublish,
+#: renew, hold or publish it again.
+OWNER_HEADER = "X-SDFR-Owner"
 
 
 # -- the answers, typed -------------------------------------------------------------------------
@@ -56,6 +60,8 @@ class Published(TypedDict):
     version: int
     ttl: float | None
     expires: float | None
+    #: The token the service belongs to (the one the client sent; null in GET /services/ID).
+    owner_token: str | None
 
 
 class Renewed(TypedDict):
@@ -166,6 +172,20 @@ def new_service_id() -> str:
     """A fresh service id (12 hex characters), chosen by the client so that a retry of the
     same publish cannot store it twice."""
     return secrets.token_hex(6)
+
+
+def new_owner_token() -> str:
+    """A fresh owner token (256 bits, URL-safe base64): a client's own, sent with each call."""
+    return secrets.token_urlsafe(32)
+
+
+def request_headers(owner_token: str, api_token: str | None) -> dict[str, str]:
+    """What every request of a client carries: its owner token, and the token of sdfrd's
+    api_token_file when it talks to another machine's API."""
+    headers = {"Accept": "application/json", OWNER_HEADER: owner_token}
+    if api_token is not None:
+        headers["Authorization"] = f"Bearer {api_token}"
+    return headers
 
 
 def service_path(service_id: str) -> str:

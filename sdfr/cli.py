@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 import os
+import secrets
 import signal
 import stat
 import sys
@@ -18,6 +19,7 @@ from typing import Any
 
 from sdfr import keystore, netif, version_text, wifi
 from sdfr.auth import MODES
+from sdfr.calls import OWNER_HEADER
 from sdfr.client import (
     Change,
     Client,
@@ -789,6 +791,55 @@ def _keys_call(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
     return answer, _show_keys(answer)
 
 
+#: The commands that change a registration: they send this user's owner token.
+OWNING = frozenset({"publish", "unpublish", "renew"})
+
+
+def owner_token_path() -> Path:
+    """Where `sdfr` keeps this user's owner token: $XDG_STATE_HOME/sdfr-cli/owner-token."""
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "sdfr-cli" / "owner-token"
+
+
+def owner_token() -> str | None:
+    """This user's owner token, made (0600) on first use, so that `sdfr unpublish` may
+    withdraw what an earlier `sdfr publish` published; None when it cannot be kept (each run
+    is then a program of its own, and only the unix socket, by user, can unpublish)."""
+    path = owner_token_path()
+    for _ in range(2):
+        try:
+            token = path.read_text().strip()
+            return token or None
+        except FileNotFoundError:
+            pass
+        except (OSError, UnicodeDecodeError):
+            return None
+        try:
+            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            continue  # another run made it meanwhile: read it
+        except OSError:
+            return None
+        token = secrets.token_urlsafe(32)
+        with os.fdopen(fd, "w") as f:
+            f.write(token + "\n")
+        return token
+    return None
+
+
+def _not_yours_hint(exc: ApiError) -> ApiError:
+    """A 403 on a registration: say how sdfr can be its owner."""
+    if exc.status != 403 or exc.field != OWNER_HEADER:
+        return exc
+    return ApiError(
+        exc.status,
+        f"{exc.message.partition(': only')[0]}; sdfr sends the token kept in "
+        f"{owner_token_path()} (the publishing user's), or use --socket as that user or root",
+        exc.field,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -806,8 +857,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "keys":
         return _keys(args)
+    token = owner_token() if args.command in OWNING else None
     try:
-        with Client(args.api, unix_socket=args.socket, timeout=args.timeout) as client:
+        with Client(
+            args.api, unix_socket=args.socket, timeout=args.timeout, owner_token=token
+        ) as client:
             if args.command == "events" or (args.command == "neighbors" and args.watch):
                 _stream(client, args, getattr(args, "json", False))
                 return 0
@@ -820,7 +874,7 @@ def main(argv: list[str] | None = None) -> int:
         elif text:
             print(text)
     except ApiError as exc:
-        print(f"sdfr: {exc}", file=sys.stderr)
+        print(f"sdfr: {_not_yours_hint(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

@@ -10,8 +10,11 @@
             ...
 
 One keep-alive connection per client (TCP, or the daemon's unix socket
-STATE_DIR/api.sock); not safe to share between threads. `sdfr.aio.AsyncClient` has the same
-calls for asyncio; both are made of the call definitions in `sdfr.calls`.
+STATE_DIR/api.sock); not safe to share between threads. A client is one program to sdfrd:
+what it publishes belongs to its owner token (`owner_token`, made for it unless given;
+keep it to unpublish after a restart of the program), sent with every call.
+`sdfr.aio.AsyncClient` has the same calls for asyncio; both are made of the call definitions
+in `sdfr.calls`.
 """
 
 from __future__ import annotations
@@ -42,7 +45,9 @@ from sdfr.calls import (
     Renewed,
     SseParser,
     neighbors_path,
+    new_owner_token,
     new_service_id,
+    request_headers,
     search_path,
     service_body,
     service_path,
@@ -114,11 +119,17 @@ class Client:
         unix_socket: str | Path | None = None,
         timeout: float = 5.0,
         retry_delays: Sequence[float] = RETRY_DELAYS,
+        owner_token: str | None = None,
+        api_token: str | None = None,
     ) -> None:
         self.api = api
         self.timeout = timeout
         #: Pauses before sending a publish again when sdfrd could not be reached.
         self.retry_delays = tuple(retry_delays)
+        #: What this client publishes belongs to this token (sent with every call).
+        self.owner_token = owner_token or new_owner_token()
+        #: The token of sdfrd's api_token_file, for an API on another machine.
+        self.api_token = api_token
         self._conn: http.client.HTTPConnection | None = None
         if unix_socket is not None:
             self._unix: str | None = str(unix_socket)
@@ -149,7 +160,14 @@ class Client:
 
     def _twin(self) -> Client:
         """Another client of the same daemon (for a thread of its own)."""
-        return Client(self.api, unix_socket=self._unix, timeout=self.timeout, retry_delays=())
+        return Client(
+            self.api,
+            unix_socket=self._unix,
+            timeout=self.timeout,
+            retry_delays=(),
+            owner_token=self.owner_token,
+            api_token=self.api_token,
+        )
 
     def _connection(self, timeout: float | None = None) -> http.client.HTTPConnection:
         timeout = self.timeout if timeout is None else timeout
@@ -161,7 +179,7 @@ class Client:
         return calls.unreachable(self.where, _reason(exc), self._unix is not None)
 
     def _exchange(self, method: str, path: str, body: bytes | None) -> tuple[int, str, bytes]:
-        headers = {"Accept": "application/json"}
+        headers = request_headers(self.owner_token, self.api_token)
         if body is not None:
             headers["Content-Type"] = "application/json"
         while True:
@@ -339,7 +357,7 @@ class Client:
         delay = 0.2
         while True:
             conn = self._connection(STREAM_IDLE)
-            headers = dict(STREAM_HEADERS)
+            headers = {**request_headers(self.owner_token, self.api_token), **STREAM_HEADERS}
             if cursor is not None:
                 headers["Last-Event-ID"] = str(cursor)
             try:

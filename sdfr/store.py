@@ -10,6 +10,11 @@ visible, so an acknowledged registration is on disk and survives a power cut, an
 whose fsync failed was never seen by any reader (nor announced). The history map,
 rebuilt from the air in seconds, is not synced.
 
+Owners of registrations: each row keeps the SHA-256 of its owner token and, when it was
+published over the unix socket, the publishing user's uid; an unpublish or renewal by
+anyone else is refused (`NotOwner`), root's on the unix socket excepted. The token itself
+is never stored.
+
 Files: the state directory is made private (0700 when created; an existing one loses its
 bits for others and the group's write), and the database and its -wal and -shm are 0600,
 whatever the umask.
@@ -30,6 +35,8 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
+import hmac
 import json
 import os
 import sqlite3
@@ -45,7 +52,7 @@ from sdfr.events import Event
 from sdfr.model import PeerRecord, Service
 from sdfr.wire import MAX_BOOT_ID
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Events the log keeps (each is at most a few KiB: see sdfr.events.MAX_SERVICES_JSON).
 EVENT_LOG_MAX = 4096
 #: The API layer's datagram socket in the state dir, to which the discovery layer sends its
@@ -62,7 +69,9 @@ CREATE TABLE IF NOT EXISTS local_services (
     seq INTEGER NOT NULL,
     body TEXT NOT NULL,
     ttl REAL,
-    expires REAL
+    expires REAL,
+    owner_hash TEXT,
+    owner_uid INTEGER
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY,
@@ -90,6 +99,10 @@ CREATE TABLE IF NOT EXISTS peers (
 
 class StoreError(SdfrError):
     """The state directory cannot be used."""
+
+
+class NotOwner(StoreError):
+    """A change of a registration asked by someone other than its owner."""
 
 
 class StateWriteError(StoreError):
@@ -121,29 +134,65 @@ def write_error(where: Path, exc: BaseException) -> StateWriteError:
     return StateWriteError(reason, f"cannot write the state directory {where}: {exc}")
 
 
+def hash_token(token: str) -> str:
+    """What the store keeps of an owner token: its SHA-256, in hex."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+@dataclass(frozen=True, slots=True)
+class Caller:
+    """Who publishes, or asks to change a registration: the hash of the owner token it
+    presented (None: none) and, on the unix socket, its uid (None: not known, e.g. TCP)."""
+
+    token_hash: str | None = None
+    uid: int | None = None
+
+    def owns(self, token_hash: str | None, uid: int | None) -> bool:
+        """Whether it may change a registration whose owner is (`token_hash`, `uid`): its
+        token's, its user's (root's: any); one stored before registrations had owners
+        (both None) is anyone's."""
+        if token_hash is None and uid is None:
+            return True
+        if self.uid is not None and (self.uid == 0 or self.uid == uid):
+            return True
+        return (
+            self.token_hash is not None
+            and token_hash is not None
+            and hmac.compare_digest(self.token_hash, token_hash)
+        )
+
+
+#: The daemon itself (an expiry, a test): may change anything.
+DAEMON = Caller(uid=0)
+
+
 @dataclass(frozen=True, slots=True)
 class Add:
-    """Register a service; with a ttl (seconds), as a lease that ends at `now + ttl`."""
+    """Register a service; with a ttl (seconds), as a lease that ends at `now + ttl`; owned
+    by `owner` (its token's hash, its uid; neither: anyone's)."""
 
     service: Service
     ttl: float | None = None
+    owner: Caller = Caller()
 
 
 @dataclass(frozen=True, slots=True)
 class Remove:
-    """Unpublish a service."""
+    """Unpublish a service (NotOwner unless `caller` owns it)."""
 
     service_id: str
+    caller: Caller = DAEMON
 
 
 @dataclass(frozen=True, slots=True)
 class Renew:
     """Extend a lease to `now + ttl` (its own ttl when None); with `set_ttl`, make `ttl` the
-    lease's ttl (None: no lease any more)."""
+    lease's ttl (None: no lease any more): a publish again. NotOwner unless `caller` owns it."""
 
     service_id: str
     ttl: float | None = None
     set_ttl: bool = False
+    caller: Caller = DAEMON
 
 
 @dataclass(frozen=True, slots=True)
@@ -256,9 +305,10 @@ class Store:
     def _migrate(self) -> None:
         """Bring a state directory of an earlier version up to this one (nothing is lost)."""
         columns = {r[1] for r in self._db.execute("PRAGMA table_info(local_services)")}
-        for name in ("ttl", "expires"):
-            if name not in columns:  # schema 1: registrations had no lease
-                self._db.execute(f"ALTER TABLE local_services ADD COLUMN {name} REAL")
+        added = (("ttl", "REAL"), ("expires", "REAL"), ("owner_hash", "TEXT"), ("owner_uid", "INT"))
+        for name, kind in added:
+            if name not in columns:  # schema 1 had no lease, 2 no owner
+                self._db.execute(f"ALTER TABLE local_services ADD COLUMN {name} {kind}")
         self._db.execute(
             "INSERT INTO meta(key, value) VALUES ('schema', ?) "
             "ON CONFLICT(key) DO UPDATE SET value = excluded.value "
@@ -343,8 +393,9 @@ class Store:
     ) -> list[int | StoreError | None]:
         """Several registration changes in one transaction, each with its event: per operation
         the new local version (Renew: 0), None (removing, renewing or expiring what is not
-        there, or was renewed since) or the error (adding an id that exists). A failed write
-        raises StateWriteError for all, and nothing of it is committed.
+        there, or was renewed since) or the error (adding an id that exists: StoreError; a
+        change by someone who does not own the registration: NotOwner). A failed write raises
+        StateWriteError for all, and nothing of it is committed.
 
         `durable`: the commit is fsynced before it is visible (one fsync for all), so that
         what is answered afterwards is on disk; if the fsync fails, nothing was committed.
@@ -362,9 +413,9 @@ class Store:
         with self._writing(), self._tx():
             for op in ops:
                 if isinstance(op, Add):
-                    out.append(self._insert(op.service, op.ttl, now, events))
+                    out.append(self._insert(op.service, op.ttl, op.owner, now, events))
                 elif isinstance(op, Remove):
-                    out.append(self._delete(op.service_id, None, events))
+                    out.append(self._delete(op.service_id, None, events, op.caller))
                 elif isinstance(op, Expire):
                     out.append(self._delete(op.service_id, op.expires, events))
                 else:
@@ -373,26 +424,44 @@ class Store:
         return out
 
     def _insert(
-        self, service: Service, ttl: float | None, now: float, events: list[Event]
+        self, service: Service, ttl: float | None, owner: Caller, now: float, events: list[Event]
     ) -> int | StoreError:
         seq = self._db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM local_services").fetchone()[0]
         expires = None if ttl is None else now + ttl
         try:
             self._db.execute(
-                "INSERT INTO local_services(id, seq, body, ttl, expires) VALUES (?, ?, ?, ?, ?)",
-                (service.id, seq, _dumps(service.to_json()), ttl, expires),
+                "INSERT INTO local_services(id, seq, body, ttl, expires, owner_hash, owner_uid) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    service.id,
+                    seq,
+                    _dumps(service.to_json()),
+                    ttl,
+                    expires,
+                    owner.token_hash,
+                    owner.uid,
+                ),
             )
         except sqlite3.IntegrityError:
             return StoreError(f"service id {service.id!r} exists already")
         events.append(event_log.published(service, ttl, expires))
         return self._bump_version()
 
-    def _delete(self, service_id: str, expires: float | None, events: list[Event]) -> int | None:
+    def _delete(
+        self,
+        service_id: str,
+        expires: float | None,
+        events: list[Event],
+        caller: Caller = DAEMON,
+    ) -> int | NotOwner | None:
         row = self._db.execute(
-            "SELECT body, expires FROM local_services WHERE id = ?", (service_id,)
+            "SELECT body, expires, owner_hash, owner_uid FROM local_services WHERE id = ?",
+            (service_id,),
         ).fetchone()
         if row is None or (expires is not None and row[1] != expires):
             return None  # not there; or an expiry of a lease renewed since
+        if not caller.owns(row[2], row[3]):
+            return NotOwner(f"service {service_id!r} belongs to another program")
         self._db.execute("DELETE FROM local_services WHERE id = ?", (service_id,))
         if expires is None:
             events.append(event_log.unpublished(service_id))
@@ -400,12 +469,15 @@ class Store:
             events.append(event_log.expired(_service_from_row(row[0])))
         return self._bump_version()
 
-    def _renew(self, op: Renew, now: float, events: list[Event]) -> int | None:
+    def _renew(self, op: Renew, now: float, events: list[Event]) -> int | NotOwner | None:
         row = self._db.execute(
-            "SELECT body, ttl FROM local_services WHERE id = ?", (op.service_id,)
+            "SELECT body, ttl, owner_hash, owner_uid FROM local_services WHERE id = ?",
+            (op.service_id,),
         ).fetchone()
         if row is None:
             return None
+        if not op.caller.owns(row[2], row[3]):
+            return NotOwner(f"service {op.service_id!r} belongs to another program")
         ttl = op.ttl if op.set_ttl or op.ttl is not None else row[1]
         if ttl is None and not op.set_ttl:
             return None  # no lease to renew

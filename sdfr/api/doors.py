@@ -1,7 +1,12 @@
 """Who may knock: the local API answers programs on this robot, not web pages (Origin,
-Sec-Fetch-Site) nor names it does not own (Host: DNS rebinding)."""
+Sec-Fetch-Site) nor names it does not own (Host: DNS rebinding). And who a client is (its
+user), for what one client may hold."""
 
 from __future__ import annotations
+
+import ipaddress
+import socket
+import struct
 
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import Handler, RequestError
@@ -19,6 +24,63 @@ _LOCAL_HOSTS = frozenset({"127.0.0.1", "localhost", "::1"})
 
 def over_unix_socket(request: Request) -> bool:
     return request.over_unix
+
+
+def is_loopback(address: str) -> bool:
+    """Whether a client's address is this machine's loopback (IPv4-mapped IPv6 included)."""
+    try:
+        ip = ipaddress.ip_address(address)
+    except ValueError:
+        return False
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return bool(ip.is_loopback or (mapped is not None and mapped.is_loopback))
+
+
+# -- who a client is ---------------------------------------------------------------------------
+
+
+def _proc_net_address(address: str, port: int) -> str:
+    """(address, port) as /proc/net/tcp{,6} writes it: the address's 32-bit words in host
+    byte order, in hex, then the port."""
+    if ":" in address:
+        raw = socket.inet_pton(socket.AF_INET6, address)
+        words = struct.unpack("=4I", raw)
+        return "".join(f"{w:08X}" for w in words) + f":{port:04X}"
+    (word,) = struct.unpack("=I", socket.inet_aton(address))
+    return f"{word:08X}:{port:04X}"
+
+
+def tcp_peer_uid(here: tuple[str, int], there: tuple[str, int]) -> int | None:
+    """The uid owning the client's socket of a TCP connection within this machine: the row
+    of /proc/net/tcp (or tcp6) whose local end is the client's and remote end ours. None
+    when there is none (no procfs; a client on another machine)."""
+    table = "/proc/net/tcp6" if ":" in there[0] else "/proc/net/tcp"
+    try:
+        local = _proc_net_address(*there)
+        remote = _proc_net_address(*here)
+        with open(table) as f:
+            next(f, None)
+            for line in f:
+                fields = line.split()
+                if len(fields) > 7 and fields[1] == local and fields[2] == remote:
+                    return int(fields[7])
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def client_identity(request: Request) -> tuple[str, int | None]:
+    """Who a client is, for what one client may hold: `uid N` (the unix socket's peer, or
+    the owner of a loopback TCP client's socket), else its address; and the uid (None: not
+    known)."""
+    if request.over_unix:
+        uid = request.peer_uid
+        return f"uid {uid}", uid
+    ends = request.addresses
+    uid = tcp_peer_uid(*ends) if ends is not None and is_loopback(ends[1][0]) else None
+    if uid is not None:
+        return f"uid {uid}", uid
+    return f"address {request.remote}", None
 
 
 def host_name(header: str) -> str:

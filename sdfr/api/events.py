@@ -18,6 +18,7 @@ import time
 from collections import deque
 from collections.abc import AsyncIterator
 
+from sdfr.api.doors import client_identity
 from sdfr.api.http import Request, Response, StreamResponse
 from sdfr.api.replies import RequestError, json_response
 from sdfr.api.state import state_of
@@ -27,6 +28,10 @@ from sdfr.store import Store, StoredEvent
 
 #: Event streams open at once; more are refused (503) so that the API keeps its descriptors.
 STREAMS_MAX = 64
+#: Event streams one client (a user: see sdfr.api.doors.client_identity) may hold; more are
+#: refused (429) so that one program cannot take them all. Root's are not counted: root can
+#: stop the daemon anyway.
+STREAMS_PER_CLIENT = STREAMS_MAX // 4
 #: A comment line this often keeps proxies and idle timers from closing a quiet stream.
 KEEPALIVE = 15.0
 #: While anyone listens, the log is looked at this often even without a wake-up.
@@ -51,6 +56,8 @@ class EventHub:
         self._closing = asyncio.Event()
         self._listened = asyncio.Event()  # set while streams are open: the poll runs
         self.streams = 0
+        #: Streams open by client (sdfr.api.doors.client_identity).
+        self.by_client: dict[str, int] = {}
         self.reads = 0  # queries of the log made by the hub (for the benchmark)
 
     def wake(self) -> None:
@@ -89,13 +96,19 @@ class EventHub:
         self._news.set()
         self._listened.set()
 
-    def opened(self) -> None:
-        """A stream starts following the log."""
+    def opened(self, client: str = "") -> None:
+        """A stream starts following the log (for `client`)."""
         self.streams += 1
+        self.by_client[client] = self.by_client.get(client, 0) + 1
         self._listened.set()
 
-    def closed(self) -> None:
+    def closed(self, client: str = "") -> None:
         self.streams -= 1
+        left = self.by_client.get(client, 1) - 1
+        if left:
+            self.by_client[client] = left
+        else:
+            self.by_client.pop(client, None)
         if not self.streams:
             self._listened.clear()
 
@@ -135,9 +148,12 @@ class EventHub:
             return self.last_id, StoredEvent(self.last_id, "resync", body)
         return after, None
 
-    async def follow(self, after: int | None) -> AsyncIterator[StoredEvent | None]:
+    async def follow(
+        self, after: int | None, gone: asyncio.Event | None = None
+    ) -> AsyncIterator[StoredEvent | None]:
         """The events after `after`, then each new one as it comes; None each KEEPALIVE of
-        silence. Ends when the server stops."""
+        silence. Ends when the server stops, or `gone` is set (the client went away: its
+        place is free at once, not at the next keep-alive)."""
         cursor, first = self.start_at(after)
         if first is not None:
             yield first
@@ -148,10 +164,19 @@ class EventHub:
                 cursor = event.id
             if batch:
                 continue
-            news = self._news
+            waits = [asyncio.ensure_future(self._news.wait())]
+            if gone is not None:
+                waits.append(asyncio.ensure_future(gone.wait()))
             try:
-                await asyncio.wait_for(news.wait(), KEEPALIVE)
-            except asyncio.TimeoutError:
+                done, _ = await asyncio.wait(
+                    waits, timeout=KEEPALIVE, return_when="FIRST_COMPLETED"
+                )
+            finally:
+                for w in waits:
+                    w.cancel()
+            if gone is not None and gone.is_set():
+                return
+            if not done:
                 yield None
 
 
@@ -213,6 +238,15 @@ async def events(request: Request) -> Response:
         raise RequestError(
             503, f"{STREAMS_MAX} event streams are open already; close one", "events"
         )
+    client, uid = client_identity(request)
+    held = hub.by_client.get(client, 0)
+    if uid != 0 and held >= STREAMS_PER_CLIENT:
+        raise RequestError(
+            429,
+            f"this client ({client}) has {held} event streams open already, the most one client "
+            f"may hold ({STREAMS_PER_CLIENT} per client, {STREAMS_MAX} in all); close one",
+            "events",
+        )
     resp = StreamResponse(
         headers={
             "Content-Type": f"{SSE}; charset=utf-8",
@@ -220,11 +254,11 @@ async def events(request: Request) -> Response:
             "X-Accel-Buffering": "no",
         }
     )
-    hub.opened()
+    hub.opened(client)
     try:
         await resp.prepare(request)
         await resp.write(b"retry: 1000\n\n")
-        async for event in hub.follow(after):
+        async for event in hub.follow(after, resp.gone):
             if event is None:
                 await resp.write(b": keep-alive\n\n")
             elif kinds is None or event.kind in kinds or event.kind == "resync":
@@ -232,7 +266,7 @@ async def events(request: Request) -> Response:
     except ConnectionError:  # the client went away
         pass
     finally:
-        hub.closed()
+        hub.closed(client)
     with contextlib.suppress(ConnectionError):
         await resp.write_eof()
     return resp

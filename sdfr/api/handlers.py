@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import re
 import secrets
 import time
 from collections.abc import Iterable
@@ -27,16 +28,56 @@ from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringFileError, StoredKeyring
 from sdfr.model import PeerRecord, Service
 from sdfr.status import DiscoveryStatus
-from sdfr.store import Add, Lease, Remove, Renew, write_reason
+from sdfr.store import Add, Caller, Lease, NotOwner, Remove, Renew, hash_token, write_reason
 from sdfr.wire import check_service_fits
 
 log = logging.getLogger("sdfr.api")
 
 
+# -- owners ------------------------------------------------------------------------------------
+
+#: The header a program sends its owner token in.
+OWNER_HEADER = "X-SDFR-Owner"
+#: What an owner token is: at least 128 bits of URL-safe base64 (secrets.token_urlsafe(16)).
+OWNER_TOKEN = re.compile(r"[A-Za-z0-9_-]{22,128}")
+
+
+def owner_token(request: Request) -> str | None:
+    """The owner token the request carries (None: none); a 400 when it is not one."""
+    token = request.headers.get(OWNER_HEADER)
+    if token is not None and not OWNER_TOKEN.fullmatch(token):
+        raise RequestError(
+            400,
+            f"{OWNER_HEADER} is not an owner token: 22-128 characters of A-Z a-z 0-9 _ - (the "
+            "owner_token a publish was answered with, or one the program chose, such as "
+            "secrets.token_urlsafe(32))",
+            OWNER_HEADER,
+        )
+    return token
+
+
+def caller(request: Request, token: str | None) -> Caller:
+    """Who asks: its token's hash, and on the unix socket its uid."""
+    return Caller(None if token is None else hash_token(token), request.peer_uid)
+
+
+def not_yours(service_id: str) -> RequestError:
+    return RequestError(
+        403,
+        f"service {service_id!r} belongs to the program that published it: only its owner "
+        f"may unpublish, renew, hold or publish it again. Send its owner token ({OWNER_HEADER}: "
+        "the owner_token the publish was answered with), or call over the unix socket as the "
+        "user that published it (or root); anyone may read it",
+        OWNER_HEADER,
+    )
+
+
 # -- handlers: local registrations -------------------------------------------------------------
 
 
-def _published(service: Service, version: int, status: int, lease: Lease | None) -> Response:
+def _published(
+    service: Service, version: int, status: int, lease: Lease | None, token: str | None
+) -> Response:
     return json_response(
         {
             "id": service.id,
@@ -44,6 +85,7 @@ def _published(service: Service, version: int, status: int, lease: Lease | None)
             "version": version,
             "ttl": None if lease is None else lease.ttl,
             "expires": None if lease is None else lease.expires,
+            "owner_token": token,
         },
         status=status,
         headers={"Location": f"/services/{service.id}"},
@@ -67,11 +109,12 @@ def _ttl(obj: object) -> float | None:
 
 
 async def _published_already(
-    state: ApiState, service: Service, ttl: float | None
+    state: ApiState, service: Service, ttl: float | None, who: Caller, token: str | None
 ) -> Response | None:
-    """A publish under a chosen id that is stored already: the same service again (a client
-    retrying after a lost answer, or publishing again after its lease ran out) gets 200 and
-    its lease is set to `ttl` (renewed); another one, 409."""
+    """A publish under a chosen id that is stored already: the same service again by its
+    owner (a client retrying after a lost answer, or publishing again after its lease ran
+    out) gets 200, on disk, and its lease is set to `ttl` (renewed); by anyone else, 403;
+    another service, 409."""
     stored = state.store.get_service(service.id)
     if stored is None:
         return None
@@ -82,15 +125,25 @@ async def _published_already(
             "leave id out and the robot picks one",
             "id",
         )
-    await state.writer.write(Renew(service.id, ttl, set_ttl=True))
+    result = await state.writer.write(Renew(service.id, ttl, set_ttl=True, caller=who))
+    if isinstance(result, NotOwner):
+        raise not_yours(service.id)
+    if result is None:  # unpublished in between: publish it as new
+        return None
+    state.write_problem = None
     lease = state.store.lease(service.id)
     state.leases.set(lease, service.id)
     state.view.leases_changed()
-    return _published(stored, state.store.local_version(), 200, lease)
+    return _published(stored, state.store.local_version(), 200, lease, token)
 
 
 async def publish(request: Request) -> Response:
+    """POST /services: the service belongs to the owner token the request carries, or one
+    made for it (answered as owner_token), and on the unix socket to its user too."""
     state = state_of(request)
+    presented = owner_token(request)
+    token = presented or secrets.token_urlsafe(32)
+    who = caller(request, token)
     obj = await read_json(request)
     ttl = _ttl(obj)
     chosen = isinstance(obj, dict) and "id" in obj
@@ -99,7 +152,7 @@ async def publish(request: Request) -> Response:
         check_service_fits(service)
     except ValidationError as exc:  # valid, but too large for the fleet to ever see
         raise RequestError(413, f"the service {exc.message}", exc.field) from None
-    if chosen and (again := await _published_already(state, service, ttl)) is not None:
+    if chosen and (again := await _published_already(state, service, ttl, who, presented)):
         return again
     # What the fleet can never see must not be acknowledged: one announcement is at most
     # MAX_PARTS datagrams.
@@ -113,12 +166,13 @@ async def publish(request: Request) -> Response:
         )
     with state.view.reserving(service):  # checked: concurrent publishes must count it
         for _ in range(3):
-            result = await state.writer.write(Add(service, ttl))
+            result = await state.writer.write(Add(service, ttl, who))
             if isinstance(result, int):
                 break
             if chosen:  # the same id published by a request that was in flight with this one
-                again = await _published_already(state, service, ttl)
-                assert again is not None
+                again = await _published_already(state, service, ttl, who, presented)
+                if again is None:
+                    continue  # (and unpublished since)
                 return again
             service = replace(service, id=secrets.token_hex(6))  # the random id exists: another
         else:
@@ -135,15 +189,17 @@ async def publish(request: Request) -> Response:
         result,
         "" if ttl is None else f", lease {ttl:g} s",
     )
-    return _published(service, result, 201, lease)
+    return _published(service, result, 201, lease, token)
 
 
 async def unpublish(request: Request) -> Response:
     state = state_of(request)
     service_id = request.match_info["id"]
-    version = await state.writer.write(Remove(service_id))
+    version = await state.writer.write(Remove(service_id, caller(request, owner_token(request))))
     if version is None:
         raise RequestError(404, f"no local service with id {service_id!r}", "id")
+    if isinstance(version, NotOwner):
+        raise not_yours(service_id)
     state.write_problem = None
     state.leases.set(None, service_id)
     notify_discovery(state.cfg.state_dir)
@@ -165,11 +221,15 @@ async def get_service(request: Request) -> Response:
     service = state.store.get_service(service_id)
     if service is None:
         raise _no_such_service(service_id)
-    return _published(service, state.store.local_version(), 200, state.store.lease(service_id))
+    lease = state.store.lease(service_id)
+    return _published(service, state.store.local_version(), 200, lease, None)
 
 
-async def _renew(state: ApiState, service_id: str, ttl: float | None) -> Lease:
-    if await state.writer.write(Renew(service_id, ttl)) is None:
+async def _renew(state: ApiState, service_id: str, ttl: float | None, who: Caller) -> Lease:
+    result = await state.writer.write(Renew(service_id, ttl, caller=who))
+    if isinstance(result, NotOwner):
+        raise not_yours(service_id)
+    if result is None:
         if state.store.get_service(service_id) is None:
             raise _no_such_service(service_id)
         raise RequestError(
@@ -189,13 +249,14 @@ async def renew(request: Request) -> Response:
     give another ttl); the answer says until when. Not fsynced: cheap."""
     state = state_of(request)
     service_id = request.match_info["id"]
+    who = caller(request, owner_token(request))
     ttl = None
     if request.body_exists:
         obj = await read_json(request)
         if not isinstance(obj, dict) or set(obj) - {"ttl"}:
             raise ValidationError("body", 'expected nothing, or {"ttl": seconds}')
         ttl = _ttl(obj)
-    lease = await _renew(state, service_id, ttl)
+    lease = await _renew(state, service_id, ttl, who)
     return json_response({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
 
 
@@ -209,7 +270,8 @@ async def hold(request: Request) -> Response:
     ttl. A program that cannot run a timer keeps its services alive with one request."""
     state = state_of(request)
     service_id = request.match_info["id"]
-    lease = await _renew(state, service_id, None)
+    who = caller(request, owner_token(request))
+    lease = await _renew(state, service_id, None, who)
     if "text/event-stream" not in request.headers.get("Accept", ""):
         # A client that cannot read a stream gets one renewal (as /renew), not a hang.
         return json_response({"id": service_id, "ttl": lease.ttl, "expires": lease.expires})
@@ -226,7 +288,7 @@ async def hold(request: Request) -> Response:
                     raise ConnectionResetError  # the holder went away
                 break  # sdfrd stops: the lease runs its ttl (a restart is quicker than that)
             try:
-                lease = await _renew(state, service_id, None)
+                lease = await _renew(state, service_id, None, who)
             except RequestError as exc:
                 gone = json.dumps({"id": service_id, "error": exc.message})
                 await resp.write(f"event: gone\ndata: {gone}\n\n".encode())

@@ -16,6 +16,7 @@ import contextlib
 import logging
 import re
 import socket
+import struct
 import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from typing import Any, Generic, TypeVar, cast
@@ -275,6 +276,18 @@ class Request:
             self._body = await self._conn.read_body(self)
         return self._body
 
+    @property
+    def peer_uid(self) -> int | None:
+        """The uid of the program at the other end of a unix socket (SO_PEERCRED, as the
+        kernel saw it connect); None over TCP."""
+        return self._conn.peer_uid()
+
+    @property
+    def addresses(self) -> tuple[tuple[str, int], tuple[str, int]] | None:
+        """(this end, the client's end) of a TCP connection: (address, port) each; None on
+        a unix socket."""
+        return self._conn.addresses()
+
 
 Handler = Callable[[Request], Awaitable[Response]]
 Middleware = Callable[[Request, Handler], Awaitable[Response]]
@@ -397,6 +410,25 @@ class _Connection:
         self.gone = False
         #: An error answer ended it: what the client still sends is read before closing.
         self.linger = False
+        self._uid: int | None = None
+
+    def peer_uid(self) -> int | None:
+        if not self.unix:
+            return None
+        if self._uid is None:
+            sock = self.writer.get_extra_info("socket")
+            cred = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+            self._uid = struct.unpack("3i", cred)[1]
+        return self._uid
+
+    def addresses(self) -> tuple[tuple[str, int], tuple[str, int]] | None:
+        if self.unix:
+            return None
+        here = self.writer.get_extra_info("sockname")
+        there = self.writer.get_extra_info("peername")
+        if not isinstance(here, tuple) or not isinstance(there, tuple):
+            return None
+        return (here[0], here[1]), (there[0], there[1])
 
     async def send(self, data: bytes) -> None:
         if self.gone or self.writer.is_closing():

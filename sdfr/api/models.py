@@ -49,6 +49,18 @@ class Published(Struct):
     version: int
     ttl: Annotated[float, Meta(description="The lease's ttl; null: no lease")] | None
     expires: Expires | None
+    owner_token: (
+        Annotated[
+            str,
+            Meta(
+                description="The token the service belongs to: send it as X-SDFR-Owner to "
+                "unpublish, renew, hold or publish it again (the one the request sent, or one "
+                "made for it). Null in GET /services/{id}, and in a publish again allowed by "
+                "the unix socket's user"
+            ),
+        ]
+        | None
+    )
 
 
 class LocalService(ServiceOutput):

@@ -5,7 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from sdfr import __version__
-from sdfr.api.handlers import FLAG_VALUES
+from sdfr.api.events import STREAMS_MAX, STREAMS_PER_CLIENT
+from sdfr.api.handlers import FLAG_VALUES, OWNER_HEADER, OWNER_TOKEN
 from sdfr.api.models import components
 from sdfr.events import FAMILIES, KINDS
 
@@ -31,6 +32,22 @@ _DOORS = {
     "description": "A web page's cross-site request (Origin, Sec-Fetch-Site) or a Host that "
     "is not one of this API's names (see api_allowed_origins, api_allowed_hosts)",
 }
+_NOT_YOURS = {
+    **_ERROR,
+    "description": "The service belongs to another program (field X-SDFR-Owner): send its "
+    "owner token, or call over the unix socket as the user that published it (or root); "
+    "or, as for every call, a web page's cross-site request or a Host not of this API",
+}
+_OWNER = {
+    "name": OWNER_HEADER,
+    "in": "header",
+    "required": False,
+    "schema": {"type": "string", "pattern": f"^{OWNER_TOKEN.pattern}$"},
+    "description": "The owner token of the calling program: a publish makes the service "
+    "its own (without one, a token is made and answered as owner_token); unpublish, renew, "
+    "hold and a publish again need the service's own token (on the unix socket, the "
+    "publishing user, or root, need none)",
+}
 
 
 TAGS = [
@@ -48,6 +65,7 @@ def openapi_document() -> dict[str, object]:
     service_id_param = [
         {"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}
     ]
+    owned_param = [*service_id_param, _OWNER]
     unix_only = (
         "Only on the unix socket STATE_DIR/api.sock (403 over TCP). Never returns key material."
     )
@@ -63,6 +81,10 @@ def openapi_document() -> dict[str, object]:
                 "operationId": "publishService",
                 "tags": ["services"],
                 "summary": "Publish a service",
+                "description": "It belongs to the calling program: its owner token "
+                "(X-SDFR-Owner, or one made for it, answered as owner_token) and, on the unix "
+                "socket, its user.",
+                "parameters": [_OWNER],
                 "requestBody": {"required": True, "content": _json_content(_ref("Registration"))},
                 "responses": {
                     "201": {
@@ -71,8 +93,11 @@ def openapi_document() -> dict[str, object]:
                             "Location": {"schema": {"type": "string"}, "description": "Its URL"}
                         },
                     },
-                    "200": _answer("Published already under this id (a retry)", "Published"),
+                    "200": _answer(
+                        "Published already under this id (a retry), on disk", "Published"
+                    ),
                     **_ERRORS_400,
+                    "403": _NOT_YOURS,
                     "409": {**_ERROR, "description": "The id is another service's"},
                     "413": {
                         **_ERROR,
@@ -99,9 +124,14 @@ def openapi_document() -> dict[str, object]:
             "delete": {
                 "operationId": "unpublishService",
                 "tags": ["services"],
-                "summary": "Unpublish a service",
-                "parameters": service_id_param,
-                "responses": {"204": {"description": "Unpublished"}, "404": _ERROR},
+                "summary": "Unpublish a service (its owner only)",
+                "parameters": owned_param,
+                "responses": {
+                    "204": {"description": "Unpublished, on disk"},
+                    "400": _ERROR,
+                    "403": _NOT_YOURS,
+                    "404": _ERROR,
+                },
             },
         },
         "/services/{id}/renew": {
@@ -109,13 +139,15 @@ def openapi_document() -> dict[str, object]:
                 "operationId": "renewService",
                 "tags": ["services"],
                 "summary": "Renew a registration's lease: it runs its ttl from now again",
-                "description": "The body may give another ttl. Cheap (not fsynced).",
-                "parameters": service_id_param,
+                "description": "Its owner only. The body may give another ttl. Cheap (not "
+                "fsynced).",
+                "parameters": owned_param,
                 "requestBody": {"required": False, "content": _json_content(_ref("Renewal"))},
                 "responses": {
                     "200": _answer("Renewed: until when", "Renewed"),
                     "404": {**_ERROR, "description": "No such service (or its lease ran out)"},
                     "409": {**_ERROR, "description": "The service has no lease"},
+                    "403": _NOT_YOURS,
                     **_ERRORS_400,
                 },
             }
@@ -129,8 +161,8 @@ def openapi_document() -> dict[str, object]:
                 "the Renewed object) each third of the ttl, for as long as the connection "
                 "stays open; `gone` if the service is unpublished meanwhile. When the "
                 "connection closes (its program ended), the lease runs out after its ttl. "
-                "Without, it renews once and answers like /renew.",
-                "parameters": service_id_param,
+                "Without, it renews once and answers like /renew. Its owner only.",
+                "parameters": owned_param,
                 "responses": {
                     "200": {
                         "description": "A stream of Server-Sent Events, or one renewal",
@@ -139,6 +171,8 @@ def openapi_document() -> dict[str, object]:
                             "application/json": {"schema": _ref("Renewed")},
                         },
                     },
+                    "400": _ERROR,
+                    "403": _NOT_YOURS,
                     "404": _ERROR,
                     "409": {**_ERROR, "description": "The service has no lease"},
                 },
@@ -196,7 +230,15 @@ def openapi_document() -> dict[str, object]:
                         },
                     },
                     "422": _ERROR,
-                    "503": {**_ERROR, "description": "Too many event streams are open"},
+                    "429": {
+                        **_ERROR,
+                        "description": f"This client (its user) holds {STREAMS_PER_CLIENT} "
+                        "streams already, the most one may",
+                    },
+                    "503": {
+                        **_ERROR,
+                        "description": f"{STREAMS_MAX} event streams are open already",
+                    },
                 },
             }
         },
@@ -394,7 +436,8 @@ def openapi_document() -> dict[str, object]:
             "title": "SDfR local API",
             "version": __version__,
             "description": "Publish this robot's services; ask which robots are reachable and "
-            "what they offer. Every answer, errors included, is JSON (except /metrics).",
+            "what they offer. Every answer, errors included, is JSON (except /metrics). A "
+            "service belongs to the program that published it (X-SDFR-Owner).",
         },
         "tags": TAGS,
         "paths": paths,

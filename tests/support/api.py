@@ -120,16 +120,24 @@ class ApiLayer:
         return self.log.read_text(errors="replace") if self.log.exists() else ""
 
 
+#: The owner token `serve`'s client sends: its requests are one program's (a test that
+#: needs another program makes a client of its own).
+TEST_OWNER = "tests-one-program-s-owner-token"
+
+
 @contextlib.asynccontextmanager
 async def serve(app: App) -> AsyncIterator[ClientSession]:
     """`app` served on a free port of 127.0.0.1 by the API's runner, and an HTTP client of it
-    (aiohttp's: a client independent of the server under test) taking paths."""
+    (aiohttp's: a client independent of the server under test) taking paths, sending
+    TEST_OWNER with each request."""
     runner = Runner(app)
     await runner.setup()
     port = free_port()
     await TCPSite(runner, "127.0.0.1", port).start()
     try:
-        async with ClientSession(base_url=f"http://127.0.0.1:{port}") as client:
+        async with ClientSession(
+            base_url=f"http://127.0.0.1:{port}", headers={"X-SDFR-Owner": TEST_OWNER}
+        ) as client:
             yield client
     finally:
         await runner.cleanup()

@@ -218,7 +218,7 @@ def test_cli_publish_services_and_unpublish(
 
     assert sdfr(["--api", layer.api, "--json", "publish", "arm", "manipulator"]) == 0
     created = json.loads(capsys.readouterr().out)
-    assert set(created) == {"id", "service", "version", "ttl", "expires"}
+    assert set(created) == {"id", "service", "version", "ttl", "expires", "owner_token"}
 
     assert sdfr(["--api", layer.api, "unpublish", sid]) == 0
     assert capsys.readouterr().out == ""

@@ -159,5 +159,5 @@ def test_a_schema_1_state_directory_is_migrated(tmp_path: Path) -> None:
     s = Store(tmp_path)
     assert s.local_state() == (1, [CAM])  # nothing lost
     assert s.lease("c1") is None
-    assert s.get_meta("schema") == "2"
+    assert s.get_meta("schema") == "3"
     s.close()
