@@ -71,6 +71,8 @@ class Config:
     ssdp_interop: str = "auto"
     api_allowed_hosts: tuple[str, ...] = ()
     api_allowed_origins: tuple[str, ...] = ()
+    api_allow_remote: bool = False
+    api_token_file: Path | None = None
     indicator_thresholds: tuple[float, ...] = (0.5, 0.8)
     layers: str = "threads"
 
@@ -104,7 +106,14 @@ class Config:
             raise ConfigError(
                 f"fleet: must be 0-255 (it is the second octet of 10.<fleet>.x.y), got {self.fleet}"
             )
-        split_hostport("api", self.api)
+        api_host, _ = split_hostport("api", self.api)
+        if not _loopback(api_host) and not (self.api_allow_remote and self.api_token_file):
+            raise ConfigError(
+                f"api: {api_host} is not a loopback address: the write API would be open to "
+                "every machine that reaches this robot. Keep it on 127.0.0.1, or set both "
+                "api_allow_remote = true and api_token_file = FILE (requests from other "
+                "machines must then carry Authorization: Bearer <the file's token>)"
+            )
         describe_address(self.describe)
         if not 0.05 <= self.beacon_interval <= 3600:
             raise ConfigError(
@@ -223,6 +232,10 @@ def split_hostport(key: str, value: str) -> tuple[str, int]:
 _WILDCARD_HOSTS = ("0.0.0.0", "::", "", IFACE_HOST)
 
 
+def _loopback(host: str) -> bool:
+    return host == "localhost" or ipaddress.ip_address(host).is_loopback
+
+
 def describe_address(describe: str) -> tuple[str, int]:
     """`describe` (HOST:PORT, HOST an address or `iface`) split; ConfigError if it is not."""
     host, sep, port = describe.rpartition(":")
@@ -308,6 +321,11 @@ _HELP: dict[str, str] = {
     "one restarts the whole daemon, state kept (default: half the memory of processes); "
     "processes: they are two processes forked by sdfrd's supervisor, so that a kill -9, a "
     "segfault or a hang of one leaves the other serving",
+    "api_allow_remote": "true: let --api listen on an address other machines reach (refused "
+    "otherwise); needs api_token_file, whose token every request from another machine must "
+    "carry (Authorization: Bearer TOKEN) (default false: the write API stays on the robot)",
+    "api_token_file": "file holding the token of api_allow_remote (one line, 16 characters "
+    "or more; readable by root only) (default: none)",
     "api_allowed_origins": "web origins whose pages may call the local API (e.g. "
     "http://dashboard.local:8080), comma separated; default none: a request a browser sends "
     "for another site's page is refused",
@@ -334,8 +352,12 @@ def _coerce(name: str, raw: Any) -> Any:
         "reply_delay_max": float,
         "wifi_freq": int,
     }
-    if name in ("state_dir", "wifi_secret_file", "key_file"):
+    if name in ("state_dir", "wifi_secret_file", "key_file", "api_token_file"):
         return Path(str(raw))
+    if name == "api_allow_remote":
+        if isinstance(raw, bool) or str(raw).lower() in ("true", "false"):
+            return raw if isinstance(raw, bool) else str(raw).lower() == "true"
+        raise ConfigError(f"{name}: expected true or false, got {raw!r}")
     if name == "indicator_thresholds":
         items = raw.split(",") if isinstance(raw, str) else raw
         if not isinstance(items, list | tuple):

@@ -6,7 +6,7 @@ import asyncio
 from collections.abc import Callable
 from pathlib import Path
 
-from sdfr.api.doors import allowed_hosts, doors
+from sdfr.api.doors import allowed_hosts, doors, load_api_token
 from sdfr.api.events import EventHub, events
 from sdfr.api.handlers import (
     get_service,
@@ -39,7 +39,8 @@ from sdfr.store import Store
 
 def create_app(cfg: Config, store: Store, *, writer_store: Callable[[Path], Store] = Store) -> App:
     """The local REST API; `store` is its connection for reads, `writer_store` opens the
-    one its writer commits registrations on."""
+    one its writer commits registrations on. ConfigError when api_token_file cannot serve."""
+    remote_token = None if cfg.api_token_file is None else load_api_token(cfg.api_token_file)
     app = App(middlewares=[measure, errors_as_json, doors], max_body=MAX_BODY)
     hub = EventHub(store)
     writer = Writer(cfg.state_dir, committed=hub.wake, open_store=writer_store)
@@ -57,6 +58,7 @@ def create_app(cfg: Config, store: Store, *, writer_store: Callable[[Path], Stor
         hosts=allowed_hosts(cfg),
         hub=hub,
         leases=leases,
+        remote_token=remote_token,
     )
     poller: list[asyncio.Task[None]] = []
 

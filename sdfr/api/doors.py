@@ -1,17 +1,21 @@
 """Who may knock: the local API answers programs on this robot, not web pages (Origin,
-Sec-Fetch-Site) nor names it does not own (Host: DNS rebinding). And who a client is (its
-user), for what one client may hold."""
+Sec-Fetch-Site) nor names it does not own (Host: DNS rebinding); other machines only with
+the token of api_token_file, when api_allow_remote lets them in at all. And who a client
+is (its user), for what one client may hold."""
 
 from __future__ import annotations
 
+import hmac
 import ipaddress
 import socket
 import struct
+from pathlib import Path
 
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import Handler, RequestError
 from sdfr.api.state import state_of
 from sdfr.config import Config
+from sdfr.errors import ConfigError
 
 #: Methods whose body, when there is one, must be JSON.
 _BODY_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
@@ -34,6 +38,34 @@ def is_loopback(address: str) -> bool:
         return False
     mapped = getattr(ip, "ipv4_mapped", None)
     return bool(ip.is_loopback or (mapped is not None and mapped.is_loopback))
+
+
+#: The shortest token api_token_file may hold.
+API_TOKEN_MIN = 16
+
+
+def load_api_token(path: Path) -> bytes:
+    """The token other machines must send (api_token_file); ConfigError naming the file."""
+    try:
+        text = path.read_text().strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise ConfigError(f"api_token_file: cannot read {path}: {reason}") from None
+    if len(text) < API_TOKEN_MIN or not text.isascii() or any(c.isspace() for c in text):
+        raise ConfigError(
+            f"api_token_file: {path} must hold one token of at least {API_TOKEN_MIN} characters, "
+            f"without spaces (e.g. `head -c 24 /dev/urandom | base64 > {path}`)"
+        )
+    return text.encode()
+
+
+def _bearer_ok(request: Request, token: bytes | None) -> bool:
+    scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+    return (
+        token is not None
+        and scheme.lower() == "bearer"
+        and hmac.compare_digest(given.strip().encode("latin-1", "replace"), token)
+    )
 
 
 # -- who a client is ---------------------------------------------------------------------------
@@ -100,6 +132,7 @@ def allowed_hosts(cfg: Config) -> frozenset[str]:
 async def doors(request: Request, handler: Handler) -> Response:
     """The write API is for programs on this robot, not for web pages they happen to show.
 
+    - A request from another machine carries the token of api_token_file (401 without).
     - Host must be one of this API's own names (else a page on a name that resolves to
       127.0.0.1 could read the fleet: DNS rebinding); not checked on the unix socket.
     - A browser's cross-site request (Origin, Sec-Fetch-Site) is refused unless its origin
@@ -107,7 +140,20 @@ async def doors(request: Request, handler: Handler) -> Response:
     - A body must be JSON: a form or text/plain body is what a page can send without asking.
     """
     state = state_of(request)
-    if not over_unix_socket(request):
+    tokened = False
+    if not over_unix_socket(request) and not is_loopback(request.remote):
+        # Another machine (only when api_allow_remote lets the API listen for it).
+        if not _bearer_ok(request, state.remote_token):
+            raise RequestError(
+                401,
+                "a request from another machine must carry Authorization: Bearer <the token "
+                "in sdfrd's api_token_file>; programs on the robot need none (127.0.0.1 or "
+                "the unix socket)",
+                "Authorization",
+                {"WWW-Authenticate": 'Bearer realm="sdfr"'},
+            )
+        tokened = True  # (a web page cannot know the token: no DNS rebinding to fear)
+    if not over_unix_socket(request) and not tokened:
         host = request.headers.get("Host")
         if host is not None and host_name(host) not in state.hosts:
             raise RequestError(

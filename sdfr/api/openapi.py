@@ -32,6 +32,11 @@ _DOORS = {
     "description": "A web page's cross-site request (Origin, Sec-Fetch-Site) or a Host that "
     "is not one of this API's names (see api_allowed_origins, api_allowed_hosts)",
 }
+_REMOTE = {
+    **_ERROR,
+    "description": "A request from another machine without the token of sdfrd's "
+    "api_token_file (Authorization: Bearer TOKEN); only with api_allow_remote",
+}
 _NOT_YOURS = {
     **_ERROR,
     "description": "The service belongs to another program (field X-SDFR-Owner): send its "
@@ -424,6 +429,7 @@ def openapi_document() -> dict[str, object]:
             if path.startswith("/keys"):  # a GET only reads the keyring
                 errors = keyring_errors if method != "get" else {"500": keyring_errors["500"]}
                 op["responses"].update(errors)
+            op["responses"].setdefault("401", _REMOTE)
             op["responses"].setdefault("403", _DOORS)
             op["responses"].setdefault("405", _ERROR)
             op["responses"].setdefault("500", _ERROR)
@@ -437,7 +443,9 @@ def openapi_document() -> dict[str, object]:
             "version": __version__,
             "description": "Publish this robot's services; ask which robots are reachable and "
             "what they offer. Every answer, errors included, is JSON (except /metrics). A "
-            "service belongs to the program that published it (X-SDFR-Owner).",
+            "service belongs to the program that published it (X-SDFR-Owner). Only programs "
+            "on the robot are answered, unless sdfrd's api_allow_remote lets other machines "
+            "in with the token of its api_token_file (Authorization: Bearer TOKEN).",
         },
         "tags": TAGS,
         "paths": paths,

@@ -427,6 +427,8 @@ class ApiState:
     #: set by create_app.
     hub: Any = None
     leases: Any = None
+    #: The token requests from other machines must carry (api_token_file); None: none may.
+    remote_token: bytes | None = None
 
     @property
     def store(self) -> Store:

@@ -93,8 +93,11 @@ def daemons(tmp_path: Path) -> Iterator[list[Daemon]]:
 def test_a_layer_that_cannot_start_ends_sdfrd_at_once(
     tmp_path: Path, daemons: list[Daemon]
 ) -> None:
-    # 192.0.2.1 (TEST-NET-1) is no address of this machine: binding it cannot work.
-    argv = sdfrd_argv(tmp_path / "s2")
+    # 192.0.2.1 (TEST-NET-1) is no address of this machine: binding it cannot work. (An API
+    # off loopback must be allowed, and tokened, to be tried at all.)
+    token = tmp_path / "api-token"
+    token.write_text("a-token-for-other-machines\n")
+    argv = sdfrd_argv(tmp_path / "s2", "--api-allow-remote", "true", "--api-token-file", str(token))
     argv[argv.index("--api") + 1] = "192.0.2.1:8700"
     started = time.monotonic()
     res = subprocess.run(argv, capture_output=True, text=True, timeout=30)
