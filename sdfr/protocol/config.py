@@ -29,6 +29,10 @@ UNPROVEN_BYTES = 2 * 1024 * 1024
 #: Challenges sent at most, per second and in a burst, to all addresses together.
 CHALLENGE_RATE = 20.0
 CHALLENGE_BURST = 128.0
+#: Bytes a challenge to a robot that may not have proven us is padded by: its answer with its
+#: own challenge riding on it (a compact reply with X-SDFR-PING) is about 30 bytes longer than
+#: a compact ping, more when the answerer's id is the longer one.
+CHALLENGE_PAD = 64
 #: A robot that just answered a challenge is challenged again no sooner than this.
 CHALLENGE_GAP = 0.05
 #: And to one address, per second and in a burst (many robots claimed at one address cost

@@ -186,7 +186,8 @@ class Core(CoreState):
                     self._forget(known)
                 return  # a robot we never proved leaves: nothing to believe, nothing to ask
         proof = self._take_proof(msg, origin, src, now)
-        peer, believed = self._gate(origin, src, now, seal, proof)
+        ping = isinstance(msg, Discovery) and msg.seq is not None
+        peer, believed = self._gate(origin, src, now, seal, proof, ping=ping)
         if isinstance(msg, Discovery):
             self._on_discovery(msg, peer if believed else None, src, now, answer_ping=True)
             if peer is not None and not believed and isinstance(msg.want, str):
@@ -394,7 +395,14 @@ class Core(CoreState):
     # -- trust -----------------------------------------------------------------------------
 
     def _gate(
-        self, origin: Origin, src: Addr, now: float, seal: Sealed | None, proof: bool
+        self,
+        origin: Origin,
+        src: Addr,
+        now: float,
+        seal: Sealed | None,
+        proof: bool,
+        *,
+        ping: bool = False,
     ) -> tuple[Peer | None, bool]:
         """The peer a datagram speaks for (None: refused), and whether what it says may be
         believed now.
@@ -439,7 +447,8 @@ class Core(CoreState):
                 peer.last_heard = now
                 peer.address = src
                 peer.wire = origin.wire  # (only the form of what we send it)
-            self._challenge(peer, src, now)
+            if not ping:  # (a ping's answer carries our challenge: `_answer_ping`)
+                self._challenge(peer, src, now)
             return peer, False
         if seal is not None and origin.boot_id == peer.boot_id:
             if not peer.window.fresh(origin.boot_id, seal.counter):
@@ -515,18 +524,26 @@ class Core(CoreState):
                     self._answered[src] = now
             return True
         group = self._group_pings.get(msg.seq)
-        if group is None or group.targets.get(origin.robot_id) != src:
+        if group is None or origin.robot_id in group.heard:
             return False
-        del group.targets[origin.robot_id]
-        if not group.targets:
-            del self._group_pings[msg.seq]
         peer = self.peers.get(origin.robot_id)
+        expected = group.targets.get(origin.robot_id)
+        if expected is not None:
+            if expected != src:
+                return False
+            del group.targets[origin.robot_id]
+        elif peer is None or peer.address != src:
+            return False  # (a robot we do not know joins by its search and our challenge)
+        group.heard.add(origin.robot_id)
         if peer is not None:
             self._round_trip(peer, now - group.sent, src, now)
         return True
 
-    def _challenge(self, peer: Peer, addr: Addr, now: float) -> bool:
+    def _challenge(self, peer: Peer, addr: Addr, now: float, *, pad: bool = True) -> bool:
         """Ping `peer` at `addr` so that its answer settles a claim; False if none was sent.
+        `pad` (CHALLENGE_PAD): the robot there may not have proven us (it is new, restarted,
+        moved, or we were apart): the challenge pays for its answer with its own challenge
+        riding on it, which it sends no unproven address more bytes than it got from there.
 
         One at a time per robot, at most one a ping timeout; per address and in all at most
         ADDR_CHALLENGE_RATE and CHALLENGE_RATE; and to an address that has not proven a round
@@ -542,7 +559,7 @@ class Core(CoreState):
             if not peer.proven:  # try again as soon as the budget allows
                 peer.next_ping = min(peer.next_ping, now + 1.0 / CHALLENGE_RATE)
             return False
-        if not self._ping(peer, now, addr=addr, challenge=True):
+        if not self._ping(peer, now, addr=addr, challenge=True, pad=pad):
             return False
         peer.challenged_at = now
         self.counters.challenges += 1
@@ -665,6 +682,8 @@ class Core(CoreState):
                 return
             del self._pings[ride]
         self._send(reply, src, to=to, compact=compact)
+        if peer is not None and not peer.proven and peer.address == src:
+            self._challenge(peer, src, now)  # (the bytes did not allow it to ride)
 
     def _remember_search(self, msg: Discovery, peer: Peer, src: Addr, now: float) -> None:
         """A search from a robot not believed yet: served (by unicast) once it answers."""

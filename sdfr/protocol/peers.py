@@ -47,6 +47,9 @@ class _GroupPing:
 
     sent: float
     targets: dict[str, Addr]
+    #: Robots that answered it (its nonce proves a round trip once per robot, a peer it did
+    #: not expect included: after a merge the first beacon each side hears proves the other).
+    heard: set[str] = field(default_factory=set)
 
 
 @dataclass(slots=True)

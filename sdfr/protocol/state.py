@@ -21,6 +21,7 @@ from sdfr.protocol.config import (
     ADDR_CHALLENGE_RATE,
     CHALLENGE_BURST,
     CHALLENGE_GAP,
+    CHALLENGE_PAD,
     CHALLENGE_RATE,
     CREDIT_CAP,
     DELTA_STEPS,
@@ -40,6 +41,11 @@ from sdfr.protocol.config import (
 )
 from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _GroupPing, _Ping
 from sdfr.wire import MAX_SEQ, WANT_ALL, WIRE_COMPACT, WIRE_FULL, Alive, Discovery, Origin, Update
+
+
+#: The header that pads a challenge (`CHALLENGE_PAD` bytes in all).
+PAD_HEADER = b"X-SDFR-PAD: "
+_PAD_FIXED = len(PAD_HEADER) + 2
 
 
 class CoreState:
@@ -156,8 +162,9 @@ class CoreState:
             )
         ):
             # A change of its set, or a robot whose last answer is too old to list it: only
-            # its answer to a ping (fresh by construction) is believed.
-            self._challenge(peer, src, now)
+            # its answer to a ping (fresh by construction) is believed.  (One that is not
+            # listed may not list us either: the challenge pays for its own, `CHALLENGE_PAD`.)
+            self._challenge(peer, src, now, pad=not peer.reachable)
         peer.last_heard = now
         if origin is not None and origin.wire != peer.wire:
             peer.wire = origin.wire
@@ -281,9 +288,16 @@ class CoreState:
         f.retry_at = now + f.backoff * self.rng.uniform(0.8, 1.2)
 
     def _ping(
-        self, peer: Peer, now: float, *, addr: Addr | None = None, challenge: bool = False
+        self,
+        peer: Peer,
+        now: float,
+        *,
+        addr: Addr | None = None,
+        challenge: bool = False,
+        pad: bool = False,
     ) -> bool:
-        """Ping `peer` (at `addr`); False if it could not go (see `_emit`)."""
+        """Ping `peer` (at `addr`); False if it could not go (see `_emit`).  `pad`: see
+        CHALLENGE_PAD."""
         dst = peer.address if addr is None else addr
         if len(self._pings) >= MAX_PINGS:
             self.counters.challenges_limited += 1
@@ -293,7 +307,8 @@ class CoreState:
         # (In the form the robot reads, wherever it is: a robot met at a new address gets the
         # small ping, which its first datagram from there pays for.)
         compact = self.config.wire_compact and peer.wire >= WIRE_COMPACT
-        if self._send(ping, dst, to=peer.robot_id, compact=compact):
+        extra = CHALLENGE_PAD if pad else 0
+        if self._send(ping, dst, to=peer.robot_id, compact=compact, pad=extra):
             return True
         del self._pings[seq]
         return False
@@ -412,7 +427,9 @@ class CoreState:
                 }
                 if targets:
                     break
-            if targets:
+            if targets or self.peers:
+                # (Expecting no answer, it still proves the peers out of reach that hear it and
+                # answer: after a merge the first beacon heard on each side lists the other.)
                 self._group_pings[seq] = _GroupPing(now, targets)
             else:
                 seq, turns = None, 1
@@ -577,9 +594,10 @@ class CoreState:
         compact: bool | None = None,
         to: str | None = None,
         answer: bool = False,
+        pad: int = 0,
     ) -> bool:
         """Encode and send `msg` (to robot `to` at `dst`; see `_emit`): compact when
-        `_compact_for(dst)` (or as told)."""
+        `_compact_for(dst)` (or as told), `pad` bytes longer (`PAD_HEADER`)."""
         if compact is None:
             compact = self._compact_for(dst)
         if compact:
@@ -589,6 +607,9 @@ class CoreState:
             data = wire.encode(msg, group=dst[0], port=dst[1])
         else:
             data = wire.encode(msg, group=self.config.group, port=self.config.port)
+        if pad > 0:
+            # (Before the blank line; every decoder passes over a header it does not know.)
+            data = b"%s%s%s\r\n\r\n" % (data[:-2], PAD_HEADER, b"0" * max(0, pad - _PAD_FIXED))
         kind = type(msg).__name__.lower()
         return self._emit(data, dst, kind, to=to, answer=answer)
 
@@ -635,7 +656,7 @@ class CoreState:
 
     # -- what the trust layer above provides (`Core`) ---------------------------------------
 
-    def _challenge(self, peer: Peer, addr: Addr, now: float) -> bool:
+    def _challenge(self, peer: Peer, addr: Addr, now: float, *, pad: bool = True) -> bool:
         raise NotImplementedError
 
     def _address_proven(self, addr: Addr, now: float) -> bool:

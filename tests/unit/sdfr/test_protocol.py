@@ -274,7 +274,7 @@ def test_unknown_version_is_asked_by_unicast() -> None:
     # (from a beacon or a ping) and must ask r3 for it.
     net.filter = lambda src, dst, data: not (dst == "r1" and src == "r3")
     net.set_services("r3", 2, services("r3", 6))
-    net.run_for(0.2)
+    net.run_for(0.4)  # (past the change's multicast delta and its repeat, `update_gap` on)
     net.filter = None
     assert net.nodes["r1"].core.peers["r3"].version == 1
     peer = net.nodes["r1"].core.peers["r3"]
