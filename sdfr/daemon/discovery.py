@@ -443,6 +443,11 @@ class DiscoveryLayer:
             # Kept to be saved again: the next periodic tick tries (when there is room).
             self.core.mark_unsaved([v.robot_id for v in views], removed)
             self._state_failed(exc)
+        else:
+            if self._state_problem is not None and (views or removed):
+                # It can be written again: say so now, not at the next status file rewrite.
+                self._state_problem = None
+                self._status_written = None
 
     def _save_views(self, removed: list[str], views: list[PeerRecord]) -> None:
         """Save what changed in the history map, with the events it makes, in one
