@@ -72,11 +72,39 @@ def _lab_runner(ns: str) -> int | None:
 
 def _foreign(ns: str) -> bool:
     """A namespace of a lab run by another live process (another user's lab, a concurrent
-    test session on the same machine) is not ours to judge."""
+    test session on the same machine) is not ours to judge.  Its runner says so while it runs;
+    once it has exited (a lab brought up by `netlab up`), the name does: `unique_lab_name`
+    puts the naming process's pid (modulo 36**4) in it, and a live process with that pid that
+    is neither this one nor one of its descendants made it."""
     pid = _lab_runner(ns)
-    if pid is None or pid == os.getpid():
+    if pid == os.getpid():
         return False
-    return os.path.exists(f"/proc/{pid}")
+    if pid is not None and os.path.exists(f"/proc/{pid}"):
+        return True
+    lab = ns[len(NETLAB_PREFIX) :].split("-", 1)[0]
+    try:
+        named_by = int(lab[1:5], 36) if len(lab) >= 6 else None
+    except ValueError:
+        named_by = None
+    if named_by is None or named_by == os.getpid() % 36**4:
+        return False
+    return any(
+        int(entry) % 36**4 == named_by and not _descends_from_us(int(entry))
+        for entry in os.listdir("/proc")
+        if entry.isdigit()
+    )
+
+
+def _descends_from_us(pid: int) -> bool:
+    me = os.getpid()
+    for _ in range(64):
+        if pid == me:
+            return True
+        fields = procfs.stat_fields(pid)
+        if not fields or len(fields) < 2 or not fields[1].isdigit() or int(fields[1]) <= 1:
+            return False
+        pid = int(fields[1])
+    return False
 
 
 def _new_namespaces() -> list[str]:
