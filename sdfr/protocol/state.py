@@ -42,7 +42,6 @@ from sdfr.protocol.config import (
 from sdfr.protocol.peers import Conflict, Counters, Peer, _Fetch, _GroupPing, _Ping
 from sdfr.wire import MAX_SEQ, WANT_ALL, WIRE_COMPACT, WIRE_FULL, Alive, Discovery, Origin, Update
 
-
 #: The header that pads a challenge (`CHALLENGE_PAD` bytes in all).
 PAD_HEADER = b"X-SDFR-PAD: "
 _PAD_FIXED = len(PAD_HEADER) + 2
@@ -178,7 +177,13 @@ class CoreState:
 
     def _prove(self, peer: Peer, origin: Origin, src: Addr, now: float) -> None:
         """The peer answered a ping of ours from `src`: believe what it says of itself now."""
-        if origin.boot_id != peer.boot_id:
+        if (
+            origin.boot_id != peer.boot_id
+            or origin.version < peer.version
+            or (origin.version == peer.version and origin.digest != peer.digest)
+        ):
+            # A new boot, or a new life under a boot id used again (its state was lost, and
+            # its versions start over): nothing of the set we hold is its set now.
             self._new_boot(peer, origin)
         elif (origin.version, origin.digest) != (peer.version, peer.digest):
             peer.version, peer.digest = origin.version, origin.digest
@@ -623,10 +628,9 @@ class CoreState:
         answer: bool = False,
     ) -> bool:
         """Send `data` to the group (`dst` None) or to robot `to` at `dst`, sealed for it when
-        the fleet signs.  While unsigned datagrams are accepted (anyone may claim any source
-        address), an address that has not proven a round trip gets no more bytes than it sent
-        us (`_credit`): False, and nothing sent, when this would be more.  `answer`: the one
-        standard answer to a plain SSDP search, which its own limits bound."""
+        the fleet signs.  An address that has not proven a round trip gets no more bytes than
+        it sent us (`_credit`): False, and nothing sent, when this would be more.  `answer`:
+        the one standard answer to a plain SSDP search, which its own limits bound."""
         ring = self.keyring
         if ring.signs and ring.primary is not None:
             self._sent_seals += 1
@@ -638,7 +642,6 @@ class CoreState:
         if (
             dst is not None
             and not answer
-            and ring.accepts_unsigned  # (else whatever we answer was sealed from `dst` itself)
             and not self._address_proven(dst, self._now)
             and not self._credit.spend(dst[0], len(data))
         ):
