@@ -6,7 +6,6 @@ import argparse
 import json
 import math
 import os
-import secrets
 import signal
 import stat
 import sys
@@ -24,9 +23,11 @@ from sdfr.client import (
     Change,
     Client,
     neighbors_path,
+    owner_token_path,
     search_path,
     service_path,
     split_api,
+    user_owner_token,
 )
 from sdfr.config import DEFAULT_API, default_state_dir, from_args, option_help
 from sdfr.errors import ApiError, ConfigError, SdfrError
@@ -795,39 +796,6 @@ def _keys_call(client: Client, args: argparse.Namespace) -> tuple[Any, str]:
 OWNING = frozenset({"publish", "unpublish", "renew"})
 
 
-def owner_token_path() -> Path:
-    """Where `sdfr` keeps this user's owner token: $XDG_STATE_HOME/sdfr-cli/owner-token."""
-    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-    return Path(base) / "sdfr-cli" / "owner-token"
-
-
-def owner_token() -> str | None:
-    """This user's owner token, made (0600) on first use, so that `sdfr unpublish` may
-    withdraw what an earlier `sdfr publish` published; None when it cannot be kept (each run
-    is then a program of its own, and only the unix socket, by user, can unpublish)."""
-    path = owner_token_path()
-    for _ in range(2):
-        try:
-            token = path.read_text().strip()
-            return token or None
-        except FileNotFoundError:
-            pass
-        except (OSError, UnicodeDecodeError):
-            return None
-        try:
-            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:
-            continue  # another run made it meanwhile: read it
-        except OSError:
-            return None
-        token = secrets.token_urlsafe(32)
-        with os.fdopen(fd, "w") as f:
-            f.write(token + "\n")
-        return token
-    return None
-
-
 def _not_yours_hint(exc: ApiError) -> ApiError:
     """A 403 on a registration: say how sdfr can be its owner."""
     if exc.status != 403 or exc.field != OWNER_HEADER:
@@ -857,7 +825,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "keys":
         return _keys(args)
-    token = owner_token() if args.command in OWNING else None
+    token = user_owner_token() if args.command in OWNING else None
     try:
         with Client(
             args.api, unix_socket=args.socket, timeout=args.timeout, owner_token=token

@@ -22,6 +22,7 @@ from __future__ import annotations
 import base64
 import http.client
 import json
+import os
 import socket
 import threading
 import time
@@ -68,10 +69,12 @@ __all__ = [
     "UnixHTTPConnection",
     "neighbors_path",
     "new_service_id",
+    "owner_token_path",
     "search_path",
     "service_body",
     "service_path",
     "split_api",
+    "user_owner_token",
 ]
 
 # What a server closing an idle keep-alive connection looks like; worth one fresh attempt.
@@ -99,6 +102,39 @@ class UnixHTTPConnection(http.client.HTTPConnection):
             sock.close()
             raise
         self.sock = sock
+
+
+def owner_token_path() -> Path:
+    """Where this user's owner token is kept: $XDG_STATE_HOME/sdfr-cli/owner-token."""
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "sdfr-cli" / "owner-token"
+
+
+def user_owner_token() -> str | None:
+    """This user's owner token, made (0600) on first use: what `sdfr publish` (or the ROS
+    node) published, a later run can unpublish or publish again. None when it cannot be kept
+    (each run is then a program of its own; the unix socket still goes by user)."""
+    path = owner_token_path()
+    for _ in range(2):
+        try:
+            token = path.read_text().strip()
+            return token or None
+        except FileNotFoundError:
+            pass
+        except (OSError, UnicodeDecodeError):
+            return None
+        try:
+            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            continue  # another run made it meanwhile: read it
+        except OSError:
+            return None
+        token = new_owner_token()
+        with os.fdopen(fd, "w") as f:
+            f.write(token + "\n")
+        return token
+    return None
 
 
 def _reason(exc: BaseException) -> str:

@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 import msgspec
 
-from sdfr.client import Client
+from sdfr.client import Client, user_owner_token
 from sdfr.errors import ApiError, SdfrError
 from sdfr.model import (
     Attributes,
@@ -329,7 +329,12 @@ class Bridge:
         self.params = params
         self.sink = sink
         self.clock = clock
-        self._connect = connect or (lambda: Client(params.api, timeout=5.0, retry_delays=()))
+        # The user's owner token (as `sdfr` keeps it): what the node published, a respawned
+        # node may publish again or unpublish (its ids are derived from the messages).
+        token = user_owner_token() if connect is None else None
+        self._connect = connect or (
+            lambda: Client(params.api, timeout=5.0, retry_delays=(), owner_token=token)
+        )
         polling = PollingSource(self._connect, params.poll_interval, clock)
         self.source = source or EventStreamSource(
             self._connect, polling, refresh=QUALITY_REFRESH, clock=clock

@@ -12,6 +12,15 @@ from sdfr.config import Config
 from sdfr.store import Store
 
 
+@pytest.fixture(autouse=True)
+def _own_state_home(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`sdfr` and the ROS node keep the user's owner token under XDG_STATE_HOME: in a test,
+    not in the home of whoever runs it."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state-home")))
+
+
 @pytest.fixture
 def cfg(tmp_path: Path) -> Config:
     return Config(state_dir=tmp_path, robot_id="r1", iface="lo", fleet=7)

@@ -27,8 +27,11 @@ from sdfr.cli import main as sdfr
 from sdfr.client import Client
 from sdfr.config import Config
 from sdfr.errors import ApiError
+from sdfr.ros.core import Bridge, ServiceRequest
+from sdfr.ros.params import NodeParams
 from sdfr.store import Store
 from tests.support.api import ApiLayer, aio, free_port
+from tests.unit.sdfr.test_ros_core import Recorder
 
 OWNER = "X-SDFR-Owner"
 CAM = {"id": "cam-1", "name": "cam", "type": "camera/rgb", "ttl": 60}
@@ -389,3 +392,24 @@ def test_the_cli_remembers_its_token(
     sid = capsys.readouterr().out.strip()
     monkeypatch.setenv("XDG_STATE_HOME", str(bob))
     assert sdfr(["--socket", str(layer.socket), "unpublish", sid]) == 0
+
+
+def test_a_restarted_ros_bridge_still_owns_what_it_published(
+    layer: ApiLayer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The ROS node publishes under ids derived from each message, and publishes them again
+    after a respawn: it keeps the user's token (as `sdfr` does), so they stay its own."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    request = ServiceRequest(name="front", type="sensor.camera")
+    params = NodeParams(api=layer.api, spawn=False)
+    first = Bridge(params, Recorder())
+    try:
+        sid = first.publish(request)
+    finally:
+        first.close()
+    again = Bridge(params, Recorder())  # the node respawned
+    try:
+        assert again.publish(request) == sid  # the same message again: still its own
+        assert again.unpublish(request) == sid
+    finally:
+        again.close()
