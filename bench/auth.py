@@ -741,6 +741,15 @@ def run_baseline(spec: str, argv: list[str]) -> dict[str, Any]:
         return result
 
 
+def run_with_core(spec: str, argv: list[str]) -> int:
+    """This bench, run in a child process against the sdfr of `spec` (see `baseline_tree`)."""
+    with tempfile.TemporaryDirectory(prefix="bench-auth-core-") as d:
+        tree = baseline_tree(spec, Path(d) / "tree")
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+        cmd = [sys.executable, "-c", _LAUNCH, str(tree), str(ROOT), *argv]
+        return subprocess.run(cmd, env=env, cwd=d).returncode
+
+
 def leaves(obj: object, path: str = "") -> Iterator[tuple[str, float | None]]:
     if isinstance(obj, dict):
         for k, v in obj.items():
@@ -780,8 +789,22 @@ def main(argv: list[str] | None = None) -> int:
         help="also run this bench against the sdfr of a git revision or a checkout, and put "
         "both side by side",
     )
+    p.add_argument(
+        "--core",
+        metavar="REV|DIR",
+        help="measure the sdfr of this git revision or checkout rather than the one imported "
+        "(the bench code stays this checkout's)",
+    )
     p.add_argument("--seeds", type=int, help="seeds of the join and restart runs (default 12)")
     args = p.parse_args(argv)
+    if args.core:
+        child = ["--out", str(args.out.resolve())]
+        child += ["--quick"] if args.quick else []
+        if args.baseline:
+            base = Path(args.baseline)
+            child += ["--baseline", str(base.resolve()) if base.exists() else args.baseline]
+        child += ["--seeds", str(args.seeds)] if args.seeds else []
+        return run_with_core(args.core, child)
     n, repeats = (2_000, 3) if args.quick else (20_000, 7)
     seeds = args.seeds or (4 if args.quick else 12)
     bytes_seeds, window = (1, 120.0) if args.quick else (3, FIVE_MINUTES_S)
