@@ -12,6 +12,7 @@ from sdfr import auth, wire
 from sdfr.auth import Keyring, Sealed
 from sdfr.model import PeerRecord, Service, service_digest
 from sdfr.protocol.config import (
+    CHALLENGE_GAP,
     CHALLENGE_RATE,
     FETCH_SETS_PER_S,
     MAX_PEERS,
@@ -279,6 +280,12 @@ class Core(CoreState):
                     peer.next_ping = max(peer.next_ping, now + 1.0 / CHALLENGE_RATE)
                 else:
                     peer.next_ping = math.inf
+            elif self._doubted(peer, now):
+                # A claim it has not confirmed yet, whose challenge had to wait (one had just
+                # been answered): ask now.
+                addr = peer.claim_addr or peer.address
+                if not self._challenge(peer, addr, now, pad=not peer.reachable):
+                    peer.challenged_at = now  # (no budget or bytes for it: a timeout later)
             elif peer.reachable and now >= peer.next_ping:
                 self._ping(peer, now)
             elif peer.reachable and now >= self._reprove_at(peer, window):
@@ -321,6 +328,13 @@ class Core(CoreState):
                 )
             elif not peer.proven:
                 t = min(t, peer.next_ping)
+            retry = peer.challenged_at + cfg.ping_timeout
+            if (
+                peer.proven
+                and peer.answered_at < peer.claimed_at
+                and retry < (peer.claimed_at + cfg.dead_after)
+            ):
+                t = min(t, retry)  # (`_doubted`)
             if not peer.known:
                 t = min(t, peer.last_heard + cfg.dead_after)
             if peer.fetch is not None:
@@ -456,20 +470,22 @@ class Core(CoreState):
             peer.window.accept(origin.boot_id, seal.counter)
         if src != peer.address:
             # A robot moves only to where it answers a challenge: a datagram sent again
-            # from elsewhere must not move it (nor bring a dead one back there).
-            self._challenge(peer, src, now)
+            # from elsewhere must not move it (nor bring a dead one back there).  (A listed
+            # robot that moved knows us: its answer needs no room for a challenge of ours.)
+            self._doubt(peer, src, now, pad=not peer.reachable)
             self._refuse("other-address")
             return peer, False
         if origin.boot_id != peer.boot_id:
             # A new boot, an earlier life's datagram (late or replayed), or a robot that lost
-            # its state (and its clock): only its answer to a challenge tells.
-            self._challenge(peer, src, now)
+            # its state (and its clock): only its answer to a challenge tells.  (A newer boot
+            # is asked at once: a challenge still in flight went to its dead predecessor.)
+            self._doubt(peer, src, now, urgent=origin.boot_id > peer.boot_id)
             self._refuse("stale-boot" if origin.boot_id < peer.boot_id else "unproven")
             return peer, False
         if peer.byebye_boot == origin.boot_id:
             # After a Byebye only an answer to our challenge brings that boot back (a Byebye
             # anyone could have sent must not lock a robot out).
-            self._challenge(peer, src, now)
+            self._doubt(peer, src, now)
             self._refuse("after-byebye")
             return peer, False
         return peer, True
@@ -501,6 +517,29 @@ class Core(CoreState):
         self._dirty.discard(peer.robot_id)
         for seq in [s for s, p in self._pings.items() if p.robot_id == peer.robot_id]:
             del self._pings[seq]
+
+    def _doubted(self, peer: Peer, now: float) -> bool:
+        """Whether a proven peer said something we have not seen it confirm, and may be
+        challenged about it now."""
+        return (
+            peer.proven
+            and peer.answered_at < peer.claimed_at
+            and now < peer.claimed_at + self.config.dead_after
+            and now >= peer.challenged_at + self.config.ping_timeout
+        )
+
+    def _doubt(
+        self, peer: Peer, src: Addr, now: float, *, pad: bool = True, urgent: bool = False
+    ) -> None:
+        """A claim of `peer`'s we do not believe on its word: challenge it (at `src`), now or
+        as soon as its last challenge allows (`_doubted`); `urgent`: CHALLENGE_GAP after it."""
+        peer.claimed_at = now
+        peer.claim_addr = src
+        if urgent:
+            peer.challenged_at = min(
+                peer.challenged_at, now - self.config.ping_timeout + CHALLENGE_GAP
+            )
+        self._challenge(peer, src, now, pad=pad)
 
     def _reprove_at(self, peer: Peer, window: float) -> float:
         """When a reachable peer whose answers went missing is pinged again."""

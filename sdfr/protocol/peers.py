@@ -74,6 +74,8 @@ class Peer:
     answered_at: float = -math.inf
     #: When it last said something not believed yet (challenged until it answers or stops).
     claimed_at: float = -math.inf
+    #: Where that claim came from (where its challenge goes).
+    claim_addr: Addr | None = None
     #: (boot, version, digest) the `services` below belong to; None when we hold no set.
     held: tuple[int, int, str] | None = None
     services: tuple[Service, ...] = ()

@@ -163,7 +163,7 @@ class CoreState:
             # A change of its set, or a robot whose last answer is too old to list it: only
             # its answer to a ping (fresh by construction) is believed.  (One that is not
             # listed may not list us either: the challenge pays for its own, `CHALLENGE_PAD`.)
-            self._challenge(peer, src, now, pad=not peer.reachable)
+            self._doubt(peer, src, now, pad=not peer.reachable)
         peer.last_heard = now
         if origin is not None and origin.wire != peer.wire:
             peer.wire = origin.wire
@@ -660,6 +660,11 @@ class CoreState:
     # -- what the trust layer above provides (`Core`) ---------------------------------------
 
     def _challenge(self, peer: Peer, addr: Addr, now: float, *, pad: bool = True) -> bool:
+        raise NotImplementedError
+
+    def _doubt(
+        self, peer: Peer, src: Addr, now: float, *, pad: bool = True, urgent: bool = False
+    ) -> None:
         raise NotImplementedError
 
     def _address_proven(self, addr: Addr, now: float) -> bool:
