@@ -75,11 +75,12 @@ def _foreign(ns: str) -> bool:
     test session on the same machine) is not ours to judge.  Its runner says so while it runs;
     once it has exited (a lab brought up by `netlab up`), the name does: `unique_lab_name`
     puts the naming process's pid (modulo 36**4) in it, and a live process with that pid that
-    is neither this one nor one of its descendants made it."""
+    is neither this one nor one of its descendants made it.  A namespace no lab records is
+    judged as ours."""
     pid = _lab_runner(ns)
-    if pid == os.getpid():
-        return False
-    if pid is not None and os.path.exists(f"/proc/{pid}"):
+    if pid is None or pid == os.getpid():
+        return False  # (no lab records it: whoever made it, it is left over)
+    if os.path.exists(f"/proc/{pid}"):
         return True
     lab = ns[len(NETLAB_PREFIX) :].split("-", 1)[0]
     try:
