@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -51,6 +52,13 @@ def test_a_reader_never_sees_a_claim_half_written() -> None:
     try:
         for _ in range(300):
             manifest.claim(big)
+            manifest.remove("writer")
+        # The reader must have read it whole at least once (on a loaded machine it may have
+        # found no record at all in 300 claims): claim until it has, sleeping between.
+        deadline = time.monotonic() + 10.0
+        while not seen and time.monotonic() < deadline:
+            manifest.claim(big)
+            time.sleep(0.002)
             manifest.remove("writer")
     finally:
         stop.set()
