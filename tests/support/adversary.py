@@ -53,8 +53,10 @@ NARROW = ("I1p", "I4v")
 #: should have a test of its own that fails until it is met):
 #: - "reused-boot-set": I2 also accepts a set of an earlier run with the same boot id as the
 #:   run that answered (a reused boot id: the old set stays listed until the new one arrives);
-#: - "keyed-credit": no I4 with a fleet key (the byte credit kept for open fleets only).
-FINDINGS = ("reused-boot-set", "keyed-credit")
+#: - "keyed-credit": no I4 with a fleet key (the byte credit kept for open fleets only);
+#: - "mirror-conflict": the outsider's relay never mirrors a robot's datagrams back to it (an
+#:   open robot's challenge of its own id, mirrored, is answered by itself: a false I5).
+FINDINGS = ("reused-boot-set", "keyed-credit", "mirror-conflict")
 
 
 class Violation(AssertionError):
@@ -226,7 +228,8 @@ class World:
             if node.name != via:
                 self._bridged_from = node.name
                 self._later(0.001, via, data, addr, "bridge")
-            else:  # back to whoever sent there last; with nobody else, to itself (a mirror)
+            elif self._bridged_from is not None or "mirror-conflict" not in self.known:
+                # back to whoever sent there last; with nobody else, to itself (a mirror)
                 self._later(0.001, self._bridged_from or via, data, addr, "bridge")
 
     def _proven(self, life: Life, addr: Addr, now: float) -> bool:

@@ -90,7 +90,7 @@ if OLD_CORE and not os.environ.get("SDFR_ADVERSARY_SHRINK"):
 
 #: Findings of this adversary that the core does not meet yet (`tests.support.adversary.
 #: FINDINGS`); each has a test of its own below.
-KNOWN: tuple[str, ...] = ()
+KNOWN: tuple[str, ...] = ("mirror-conflict",)
 
 
 def allowed(name: str) -> bool:
@@ -212,6 +212,12 @@ class Fleet(RuleBasedStateMachine):
             version=self.versions[robot],
             services=svcs,
         )
+        if boot_id == old.boot and not new_services:
+            # Back with its own boot id, version and set (its state kept): the same boot goes
+            # on, and what it announced before is still that boot's (I2).  A robot re-imaged
+            # under its old boot id (new services) is a new life of it.
+            new = self.world.current(robot)
+            new.sets = [*old.sets, *new.sets]
         self._saved()
 
     @precondition(lambda self: allowed("partition"))
@@ -409,6 +415,25 @@ def test_a_reused_boot_id_does_not_keep_the_old_runs_services_listed(keyed: bool
         state.holds()
 
     expect("I2", steps)
+
+
+@finding("mirror-conflict")
+def test_an_open_robot_is_not_in_conflict_with_its_own_mirror() -> None:
+    """I5 without a key: the outsider sends a robot one of its own datagrams from the
+    outsider's address and mirrors what the robot sends there back to it.  The robot challenges
+    the address that claims its id, its challenge comes back as a ping naming it, it answers
+    that, and its answer comes back with the nonce it is waiting for: it records a conflict
+    with itself (/health "warning") though no other daemon has its id."""
+    state = judged_for("mirror-conflict", keyed=False)
+
+    def steps() -> None:
+        state.build(n=3, beacon_pings=False, seed=0)
+        state.bridge(via="r1", at="outsider")
+        state.inject(sender="r1", kind="search", back=0, life="this", to="r1", src="outsider")
+        state.run(seconds=1.0)
+        state.holds()
+
+    expect("I5", steps)
 
 
 @finding("keyed-credit")
