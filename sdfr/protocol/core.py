@@ -659,6 +659,11 @@ class Core(CoreState):
     ) -> None:
         """A datagram with our robot id: our own echo, a replay, or a second daemon.  Only a
         second daemon that answers a challenge of ours (its nonce) is a conflict."""
+        if isinstance(msg, Discovery) and msg.seq is not None and msg.seq in self._pings:
+            # Our own challenge, sent back to us (a mirror): answering it would make our own
+            # answer look like a second daemon's.
+            self.counters.rejects["own"] += 1
+            return
         if isinstance(msg, Response) and msg.seq is not None:
             ping = self._pings.get(msg.seq)
             if ping is not None and ping.robot_id == origin.robot_id and ping.addr == src:
