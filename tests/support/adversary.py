@@ -56,7 +56,9 @@ NARROW = ("I1p", "I4v")
 #: - "keyed-credit": no I4 with a fleet key (the byte credit kept for open fleets only);
 #: - "mirror-conflict": the outsider's relay never mirrors a robot's datagrams back to it (an
 #:   open robot's challenge of its own id, mirrored, is answered by itself: a false I5).
-FINDINGS = ("reused-boot-set", "keyed-credit", "mirror-conflict")
+#: - "late-old-answer": I2 also accepts the run whose answer arrived last (a run's answer to
+#:   an older ping, held back past a newer run's answer, is believed: the old boot flaps back).
+FINDINGS = ("reused-boot-set", "keyed-credit", "mirror-conflict", "late-old-answer")
 
 
 class Violation(AssertionError):
@@ -363,8 +365,11 @@ class World:
                     continue
                 view = core.view(core.peers[r])
                 latest = life.latest_ping_proof[r].prover
-                if "I2" in self.checks and (
-                    view.boot_id != latest.boot or view.services not in self._sets(latest)
+                provers = [latest]
+                if "late-old-answer" in self.known:
+                    provers.append(proof.prover)
+                if "I2" in self.checks and not any(
+                    view.boot_id == p.boot and view.services in self._sets(p) for p in provers
                 ):
                     held = [s.id for s in view.services]
                     self._fail(

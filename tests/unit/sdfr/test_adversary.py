@@ -91,7 +91,7 @@ if OLD_CORE and not os.environ.get("SDFR_ADVERSARY_SHRINK"):
 
 #: Findings of this adversary that the core does not meet yet (`tests.support.adversary.
 #: FINDINGS`); each has a test of its own below.
-KNOWN: tuple[str, ...] = ()
+KNOWN: tuple[str, ...] = ("late-old-answer",)
 
 
 def allowed(name: str) -> bool:
@@ -435,6 +435,29 @@ def test_an_open_robot_is_not_in_conflict_with_its_own_mirror() -> None:
         state.holds()
 
     expect("I5", steps)
+
+
+@finding("late-old-answer")
+@pytest.mark.parametrize("keyed", [True, False], ids=["keyed", "open"])
+def test_an_old_runs_late_answer_does_not_undo_the_new_runs(keyed: bool) -> None:
+    """I2: the outsider holds r2's replies to r3 for 0.3 s; r2 restarts silently (boot 11)
+    with one of its old run's replies still held.  r3 believes the new run's answer (boot 11),
+    then the old run's answer to an older ping arrives, within the ping timeout, and is believed
+    too ("a lower boot that answers is believed at once"): r3 lists r2 with boot 10 and no
+    services until the next answer (7 ms here; a flap each way for r3's watchers).  An answer
+    to a ping older than one already answered must not undo it."""
+    state = judged_for("late-old-answer", keyed)
+
+    def steps() -> None:
+        state.build(n=3, beacon_pings=False, seed=0)
+        state.policy(action="delay", kind="reply", sender="r2", receiver="r3", delay=0.3)
+        state.run(seconds=0.5)
+        state.calm()
+        state.restart(robot="r2", graceful=False, boot="next", history="kept", new_services=False)
+        state.run(seconds=1.0)
+        state.holds()
+
+    expect("I2", steps)
 
 
 @finding("keyed-credit")
