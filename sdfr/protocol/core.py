@@ -561,7 +561,8 @@ class Core(CoreState):
                     self._round_trip(peer, now - ping.sent, src, now)
                 else:
                     self._answered[src] = now
-            return True
+            return self._newest_answer(peer, ping.sent)
+        group = self._group_pings.get(msg.seq)
         group = self._group_pings.get(msg.seq)
         if group is None or origin.robot_id in group.heard:
             return False
@@ -576,6 +577,18 @@ class Core(CoreState):
         group.heard.add(origin.robot_id)
         if peer is not None:
             self._round_trip(peer, now - group.sent, src, now)
+        return self._newest_answer(peer, group.sent)
+
+    @staticmethod
+    def _newest_answer(peer: Peer | None, asked: float) -> bool:
+        """Whether an answer to a ping sent at `asked` may be believed: not when an answer to
+        a later ping was believed already (a late answer of an earlier life, held back by the
+        network or an outsider, must not undo what its successor said)."""
+        if peer is None:
+            return True
+        if asked < peer.asked_at:
+            return False
+        peer.asked_at = asked
         return True
 
     def _challenge(self, peer: Peer, addr: Addr, now: float, *, pad: bool = True) -> bool:

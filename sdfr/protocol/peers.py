@@ -72,6 +72,8 @@ class Peer:
     known: bool = False
     #: When it last answered a ping of ours (the proof that keeps it listed reachable).
     answered_at: float = -math.inf
+    #: When the ping was sent whose answer was last believed (later answers only, `_prove`).
+    asked_at: float = -math.inf
     #: When it last said something not believed yet (challenged until it answers or stops).
     claimed_at: float = -math.inf
     #: Where that claim came from (where its challenge goes).
