@@ -18,22 +18,21 @@ Messages (see sdfr.wire):
   digest, so a robot whose services did not change costs a few hundred bytes.
 - Byebye (NOTIFY ssdp:byebye): graceful departure.
 
-Trust (see also sdfr.auth):
-- With a fleet key every datagram goes out sealed; one whose seal fails is dropped before it
-  is parsed, and one whose counter was seen already in that boot (a replay) right after.
-- A claim that contradicts what a robot last proved is never applied on the word of one
-  datagram: an older boot, a datagram after that boot's Byebye, an older version, a new
-  address.  It is answered with a *challenge*, a ping to the address it came from, and the
-  robot's answer to that (its boot, version and digest, fresh by construction) is what is
-  believed.  So nothing is ever locked out for good.
-- A robot heard only through unsigned datagrams is *unproven* until it answers a ping: it is
-  challenged at once (and again every ping timeout while it stays unproven), neither saved
-  nor listed, and forgotten after a miss limit of silence.  At most MAX_UNPROVEN of them are
-  held, and MAX_PEERS robots in all.
-- An address that has not answered a ping of ours never gets more bytes than it sent: its
-  unicast fetch waits for its answer to a challenge, and its multicast search is answered by
-  multicast, at most once every MCAST_SET_GAP.  Work is bounded per source address
-  (SOURCE_RATE), and challenges in all (CHALLENGE_RATE).
+Trust (see also sdfr.auth, and docs/security.md for each claim's test):
+- Pings and pinging beacons carry a 64-bit random nonce; only a robot's answer to one of ours,
+  from where the ping went, changes what is believed of it (boot, version, digest, address),
+  and a robot is listed reachable only while it answered lately.  A robot never heard, a new,
+  lower or reused boot, another address and every peer after a restart of ours are challenged
+  first; their Update parts may be held (bounded) and are applied once the answer names that
+  set.  A lower or reused boot that answers is believed at once: nothing is locked out.
+- With a fleet key every datagram goes out sealed for its recipient (or the fleet) and from
+  its sender's address; one whose seal fails, that is for another robot or that comes from
+  elsewhere is dropped before it is parsed, and a proven peer's counter seen already (a
+  replay) right after.
+- At most MAX_UNPROVEN robots not yet proven are held, and MAX_PEERS in all.
+- An address that has not answered a ping of ours never gets more bytes than it sent
+  (`_credit`); searches cost at most one whole-set multicast a beacon period.  Work is bounded
+  per source address (SOURCE_RATE), and challenges per address and in all (CHALLENGE_RATE).
 
 The package: `config` (limits, timing), `peers` (what a robot knows of others), `state`
 (the core's state, peer bookkeeping, sending) and `core` (`Core`: what arrives, whom to

@@ -12,7 +12,6 @@ from sdfr import auth, wire
 from sdfr.auth import Keyring, Sealed
 from sdfr.model import PeerRecord, Service, service_digest
 from sdfr.protocol.config import (
-    CHALLENGE_GAP,
     CHALLENGE_RATE,
     FETCH_SETS_PER_S,
     MAX_PEERS,
@@ -536,9 +535,7 @@ class Core(CoreState):
         peer.claimed_at = now
         peer.claim_addr = src
         if urgent:
-            peer.challenged_at = min(
-                peer.challenged_at, now - self.config.ping_timeout + CHALLENGE_GAP
-            )
+            self._challenge_soon(peer, now)
         self._challenge(peer, src, now, pad=pad)
 
     def _reprove_at(self, peer: Peer, window: float) -> float:

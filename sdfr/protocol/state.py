@@ -192,7 +192,7 @@ class CoreState:
         peer.answered_at = now
         # Answered: the next claim (a change right behind this one) may be asked about soon,
         # not a ping timeout later; CHALLENGE_GAP bounds what forged claims cost it.
-        peer.challenged_at = min(peer.challenged_at, now - self.config.ping_timeout + CHALLENGE_GAP)
+        self._challenge_soon(peer, now)
         if not peer.proven:
             peer.proven = True
             if not peer.known:
@@ -209,6 +209,11 @@ class CoreState:
             # link's record, and the window slides them out as new pings settle.
             self._schedule_ping(peer, now)
             self._dirty.add(peer.robot_id)
+
+    def _challenge_soon(self, peer: Peer, now: float) -> None:
+        """Let `peer` be challenged again CHALLENGE_GAP after now, not a ping timeout after its
+        last challenge."""
+        peer.challenged_at = min(peer.challenged_at, now - self.config.ping_timeout + CHALLENGE_GAP)
 
     def _new_boot(self, peer: Peer, origin: Origin) -> None:
         """The peer restarted: its old service set goes, never merged with the new one."""
@@ -455,7 +460,7 @@ class CoreState:
         """Answer the searches gathered during the reply delay: one multicast serves many.
 
         A lone searcher gets the set by unicast (once its address has answered a ping of
-        ours); several by multicast, at most once every MCAST_SET_GAP (a multicast is aimed
+        ours); several by multicast, at most once every `mcast_set_gap` (a multicast is aimed
         at nobody, and a flood of searches costs one set a gap).
         """
         targets = self._reply_to
