@@ -33,6 +33,7 @@ class Counters:
     rejects: dict[str, int] = field(default_factory=dict)
     challenges: int = 0
     challenges_limited: int = 0
+    invites: int = 0
 
 
 @dataclass(frozen=True, slots=True)

@@ -143,6 +143,12 @@ def metrics_text(state: ApiState) -> str:
     )
     out.append(f"sdfr_challenges_limited_total {c.challenges_limited}")
     family(
+        "sdfr_invites_total",
+        "counter",
+        "Extra beacons inviting robots whose first beacon did not pay for a challenge.",
+    )
+    out.append(f"sdfr_invites_total {c.invites}")
+    family(
         "sdfr_robot_id_conflicts_total",
         "counter",
         "Datagrams from another sender claiming this robot's id.",

@@ -645,6 +645,7 @@ class DiscoveryLayer:
                 rejects=dict(c.rejects),
                 challenges=c.challenges,
                 challenges_limited=c.challenges_limited,
+                invites=c.invites,
             ),
             auth=self._auth_status(),
             describe=self.describe.status(),

@@ -12,6 +12,7 @@ from sdfr import auth, wire
 from sdfr.auth import Keyring, Sealed
 from sdfr.model import PeerRecord, Service, service_digest
 from sdfr.protocol.config import (
+    CHALLENGE_PAD,
     CHALLENGE_RATE,
     FETCH_SETS_PER_S,
     MAX_PEERS,
@@ -609,10 +610,47 @@ class Core(CoreState):
                 peer.next_ping = min(peer.next_ping, now + 1.0 / CHALLENGE_RATE)
             return False
         if not self._ping(peer, now, addr=addr, challenge=True, pad=pad):
+            if len(self._pings) < MAX_PINGS and not self._address_proven(addr, now):
+                self._invite(now)  # (its address has not paid for the challenge yet)
             return False
         peer.challenged_at = now
         self.counters.challenges += 1
         return True
+
+    def _invite(self, now: float) -> None:
+        """Ask every robot that has not proven us to challenge us: an extra beacon, without a
+        nonce, padded so that the challenge it draws (padded itself, `CHALLENGE_PAD`) costs
+        no more than it brings.  Sent when a robot's first beacon does not pay for our
+        challenge of it: the two meet within one round trip of the first beacon heard, not a
+        beacon period later.  Robots that believe us take it as the beacon it is.  At most
+        one a beacon period: a multicast is sent to no third party, and claims cost the group
+        one datagram a period at most."""
+        if not self._invites.take(now):
+            return
+        compact = self._compact_for(None)
+        me = self._origin()
+        if compact:
+            invite = Alive(me, "", 0)
+        else:
+            invite = Alive(me, self.location, self.config.max_age)
+        # The largest challenge a robot that has not proven us sends back: its id may be
+        # longer than ours, its boot, version and nonce as long as they go.
+        longest = max((len(p.robot_id) for p in self.peers.values() if not p.proven), default=0)
+        them = replace(
+            me,
+            robot_id="x" * max(longest, len(me.robot_id)),
+            boot_id=2**31 - 1,
+            version=max(me.version, 10**6),
+        )
+        challenge = Discovery(them, self._me(), 0, seq=wire.MAX_SEQ, multicast=False)
+        group, port = self.config.group, self.config.port
+        size = len(wire.encode(invite, group=group, port=port, compact=compact))
+        # (A unicast search names the robot's address: as long as an address goes.)
+        far = "fe80::ffff:ffff:ffff:ffff" if ":" in group else "255.255.255.255"
+        need = len(wire.encode(challenge, group=far, port=port, compact=compact))
+        need += CHALLENGE_PAD + len(me.robot_id)  # (its seal names us, ours the fleet)
+        if self._send(invite, None, compact=compact, pad=need - size):
+            self.counters.invites += 1
 
     def _address_proven(self, addr: Addr, now: float) -> bool:
         """Whether `addr` answered a ping of ours lately: it may get more than it sent."""

@@ -134,3 +134,6 @@ class Counters:
     challenges: int = 0
     #: Challenges not sent for want of budget (CHALLENGE_RATE): a sign of a flood.
     challenges_limited: int = 0
+    #: Invitations to challenge us sent (`Core._invite`): robots whose first beacon did not
+    #: pay for our challenge.
+    invites: int = 0

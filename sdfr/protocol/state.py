@@ -111,6 +111,8 @@ class CoreState:
         self._addr_challenges = KeyedBuckets(ADDR_CHALLENGE_RATE, ADDR_CHALLENGE_BURST, MAX_SOURCES)
         self._plain_budget = TokenBucket(PLAIN_RATE, PLAIN_BURST)
         self._plain_sources = KeyedBuckets(PLAIN_SOURCE_RATE, PLAIN_SOURCE_BURST, MAX_SOURCES)
+        #: Invitations to challenge us (`_invite`): one a beacon period.
+        self._invites = TokenBucket(1.0 / config.beacon_interval, 1.0)
         #: What each address sent us and we did not spend on answers to it yet: all an address
         #: that has not proven a round trip may get from us (no amplification).
         self._credit = ByteCredit(CREDIT_CAP, MAX_SOURCES)

@@ -736,7 +736,7 @@ async def test_metrics_of_auth_challenges_conflicts_and_errors(
         errors={"recent": 2, "last": "x"},
         robot_id_conflict={"address": "10.7.0.8", "boot_id": 1, "last_seen": 1.0, "count": 6},
     )
-    record["counters"] = {**record["counters"], "challenges": 17, "challenges_limited": 3}
+    record["counters"] = {**record["counters"], "challenges": 17, "challenges_limited": 3, "invites": 2}
     discovery_store.write_status(record)
     async with serve(create_app(cfg, store)) as c:
         samples = parse_metrics(await (await c.get("/metrics")).text())
@@ -746,6 +746,7 @@ async def test_metrics_of_auth_challenges_conflicts_and_errors(
     assert samples['sdfr_auth_verified_total{key="deadbeef"}'] == 2
     assert samples["sdfr_challenges_total"] == 17
     assert samples["sdfr_challenges_limited_total"] == 3
+    assert samples["sdfr_invites_total"] == 2
     assert samples["sdfr_robot_id_conflicts_total"] == 6
     assert samples["sdfr_discovery_errors"] == 2
 

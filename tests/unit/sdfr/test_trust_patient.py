@@ -343,3 +343,39 @@ def test_a_sealed_datagram_names_its_recipient_and_sender() -> None:
     for data in multicasts(net, "r1")[-3:]:
         sealed = auth.seal_of(data)
         assert sealed is not None and sealed.fleet
+
+
+def _first_meeting(keyring: Keyring, a: str, b: str, seed: int) -> float:
+    """Robots `a` and `b` (each already meeting a third, so their beacons ping) come into
+    range of each other: how long after the first datagram one heard from the other both
+    list each other."""
+    net = SimNet(seed=seed)
+    cfg = {"beacon_interval": BEACON, "keyring": keyring}
+    net.blocked.add(frozenset((a, b)))
+    for name in (a, b, "hub"):
+        net.add(name, services=services(name, 3), **cfg)  # type: ignore[arg-type]
+    net.wait_until(lambda: listed(net, a, "hub") and listed(net, b, "hub"), 4 * BEACON)
+    net.run_for(5.37 * BEACON)  # (past the searches of a start, not in step with beacons)
+    heard: list[float] = []
+
+    def first(node: object, data: bytes, src: Addr) -> None:
+        pair = {net.nodes[a].addr, net.nodes[b].addr}
+        if not heard and node in (net.nodes[a], net.nodes[b]) and src in pair:
+            heard.append(net.now)
+
+    net.on_receive = first  # type: ignore[assignment]
+    net.blocked.clear()
+    net.wait_until(lambda: listed(net, a, b) and listed(net, b, a), 4 * BEACON, step=0.001)
+    assert heard
+    return net.now - heard[0]
+
+
+def test_robots_that_meet_list_each_other_within_a_round_trip_of_the_first_beacon() -> None:
+    # A first beacon does not pay for a padded challenge (no amplification), so the robot
+    # that heard it invites one (`Core._invite`): both list each other a few network delays
+    # (1-4 ms here) later, not a beacon period later.  Ids of different lengths: the
+    # invitation pays for the longer one's challenge.
+    for keyring in (Keyring(), keyed()):
+        for seed, (a, b) in enumerate([("r1", "r2"), ("r1", "robot-with-a-much-longer-id-7")]):
+            took = _first_meeting(keyring, a, b, seed=310 + seed)
+            assert took < 0.05 * BEACON, (keyring.signs, a, b, took)
