@@ -629,10 +629,8 @@ class Core(CoreState):
             return
         compact = self._compact_for(None)
         me = self._origin()
-        if compact:
-            invite = Alive(me, "", 0)
-        else:
-            invite = Alive(me, self.location, self.config.max_age)
+        # (In the beacon's own form: the compact one names no LOCATION, no max-age.)
+        invite = Alive(me, "", 0) if compact else Alive(me, self.location, self.config.max_age)
         # The largest challenge a robot that has not proven us sends back: its id may be
         # longer than ours, its boot, version and nonce as long as they go.
         longest = max((len(p.robot_id) for p in self.peers.values() if not p.proven), default=0)

@@ -736,7 +736,8 @@ async def test_metrics_of_auth_challenges_conflicts_and_errors(
         errors={"recent": 2, "last": "x"},
         robot_id_conflict={"address": "10.7.0.8", "boot_id": 1, "last_seen": 1.0, "count": 6},
     )
-    record["counters"] = {**record["counters"], "challenges": 17, "challenges_limited": 3, "invites": 2}
+    more = {"challenges": 17, "challenges_limited": 3, "invites": 2}
+    record["counters"] = {**record["counters"], **more}
     discovery_store.write_status(record)
     async with serve(create_app(cfg, store)) as c:
         samples = parse_metrics(await (await c.get("/metrics")).text())
