@@ -6,13 +6,13 @@ import ipaddress
 import os
 import re
 import sys
-from collections.abc import Iterable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sdfr import version_text, wire
 from sdfr.errors import ConfigError
+from sdfr.hints import did_you_mean
 from sdfr.model import ROBOT_ID_RE
 from sdfr.protocol import (
     BEACON_INTERVAL,
@@ -405,7 +405,7 @@ def load_toml(path: Path) -> dict[str, object]:
                 continue
             if isinstance(value, dict):
                 raise ConfigError(
-                    f"config: unknown section [{key}] in {path}{_hint(key, ['sdfrd'])}; "
+                    f"config: unknown section [{key}] in {path}{did_you_mean(key, ['sdfrd'])}; "
                     "sdfrd reads [sdfrd] only"
                 )
             raise ConfigError(
@@ -418,26 +418,18 @@ def load_toml(path: Path) -> dict[str, object]:
     for key, raw in table.items():
         name = key.replace("-", "_")
         if name not in names and isinstance(raw, dict):
-            hint = _hint(key, ["sdfrd"]).replace("'sdfrd'", "[sdfrd]")
+            hint = did_you_mean(key, ["sdfrd"]).replace("'sdfrd'", "[sdfrd]")
             raise ConfigError(
                 f"config: unknown section [{key}] in {path}{hint}; sdfrd reads [sdfrd] (or "
                 "keys at the top level)"
             )
         if name not in names:
             raise ConfigError(
-                f"config: unknown key {key!r} in {path}{_hint(name, names)}; "
+                f"config: unknown key {key!r} in {path}{did_you_mean(name, names)}; "
                 f"known keys: {', '.join(sorted(names))}"
             )
         out[name] = _coerce(name, raw)
     return out
-
-
-def _hint(word: str, choices: Iterable[str]) -> str:
-    """(did you mean 'x'?) for the closest of `choices`, or nothing."""
-    import difflib  # (only a mistake pays for it)
-
-    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def build_parser() -> argparse.ArgumentParser:
