@@ -576,7 +576,7 @@ def test_ping_delivery_pairs_pings_with_their_replies() -> None:
 
 
 def test_every_time_plot_of_a_run_shares_its_axis_events_deadlines_and_title() -> None:
-    from netlab.report import Timeline
+    from netlab.plots import Timeline
 
     t0 = 1000.0
     meta = {
