@@ -15,6 +15,12 @@
 #   SDFR_VM_TIMEOUT=900   seconds before the VM is killed and the tier fails
 #   SDFR_VM_KERNEL=PATH   the kernel image to boot (default: newest Debian amd64)
 #   SDFR_VM_KVM=1         use KVM (default off: it hangs on the CI machines)
+#   SDFR_KEEP_LOGS=DIR    where a failed test's lab folders go (default: $TMPDIR or /tmp)
+#
+# A failed test's lab folders (every robot's sdfrd.log and state, the pcaps) are copied out
+# of the guest as the test fails (tests/netem/keep.py), into a new folder
+# sdfr-vm-netem-logs.XXXXXX under SDFR_KEEP_LOGS that the guest may write; the failure and
+# this script's last lines say where. No test failed: the folder is removed.
 #
 # No leftovers: the VM runs in a process group of its own (timeout's), which is
 # killed on timeout, Ctrl-C or any exit; the results directory is removed.
@@ -49,6 +55,10 @@ pytest_args=("$@")
 [ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s tests/netem)
 
 res=$(mktemp -d -t sdfr-vm-netem.XXXXXX)
+keep_root=${SDFR_KEEP_LOGS:-${TMPDIR:-/tmp}}
+mkdir -p "$keep_root"
+keep=$(mktemp -d "$keep_root/sdfr-vm-netem-logs.XXXXXX")
+keep=$(cd "$keep" && pwd -P) # the same path in the guest: absolute, no links
 vm_pgid="" # timeout's pid, and the id of the process group of the whole VM
 vm_reaped=""
 tail_pid=""
@@ -76,6 +86,12 @@ cleanup() {
         wait "$tail_pid" 2>/dev/null || true
     fi
     rm -rf "$res"
+    if [ -n "$(ls -A "$keep" 2>/dev/null)" ]; then
+        echo "vm-netem: the failed tests' lab folders (daemon logs, state, pcaps) are kept" \
+            "in $keep" >&2
+    else
+        rmdir "$keep" 2>/dev/null || true
+    fi
 }
 trap cleanup EXIT
 trap 'echo "vm-netem: interrupted, stopping the VM" >&2; exit 130' INT
@@ -90,6 +106,7 @@ trap 'echo "vm-netem: terminated, stopping the VM" >&2; exit 143' TERM
     echo 'echo "vm: up after $(cut -d" " -f1 /proc/uptime)s: kernel $(uname -r), $(nproc) cpu"'
     echo 'if ! modprobe sch_netem; then touch "$res/no-netem"; exit 0; fi'
     echo 'export PYTHONDONTWRITEBYTECODE=1 # the repository is read-only in the guest'
+    printf 'export SDFR_KEEP_LOGS=%q # a failed test copies its lab folders there\n' "$keep"
     # Not the hypothesis plugin: these tests do not use it, and importing it is a good part
     # of pytest's start-up under emulation.
     printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
@@ -100,7 +117,8 @@ trap 'echo "vm-netem: terminated, stopping the VM" >&2; exit 143' TERM
 
 # One vCPU: under software emulation on a 2-core machine a second one made the guest
 # 2-3 times slower (its vCPU threads contend with each other and the host).
-vng_args=(--run "$kernel" --user root --cpus 1 --memory 1G --rwdir "$res" --cwd "$repo")
+vng_args=(--run "$kernel" --user root --cpus 1 --memory 1G --rwdir "$res" --rwdir "$keep"
+    --cwd "$repo")
 [ "${SDFR_VM_KVM:-0}" = 1 ] || vng_args+=(--disable-kvm)
 
 echo "vm-netem: booting $kver under QEMU$([ "${SDFR_VM_KVM:-0}" = 1 ] || echo ' (software emulation)'), limit ${limit}s"

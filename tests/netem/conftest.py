@@ -1,0 +1,34 @@
+"""The netem tier's failures keep their evidence: see tests/netem/keep.py."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.netem.keep import keep_failed
+
+_kept: list[str] = []
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    outcome = yield
+    report: pytest.TestReport = outcome.get_result()
+    if not report.failed:
+        return
+    factory = getattr(item.config, "_tmp_path_factory", None)
+    if factory is None:  # (no tmpdir plugin: no folders to keep)
+        return
+    text = keep_failed(Path(factory.getbasetemp()), f"{item.nodeid} ({report.when})")
+    report.sections.append(("kept logs", text))
+    _kept.append(text)
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    if _kept:
+        terminalreporter.section("netem: kept logs")
+        for text in _kept:
+            terminalreporter.write_line(text)
