@@ -13,7 +13,8 @@ both remove the same things the same way:
    definition and is killed by pid;
 4. the namespaces are deleted, recorded ones and any named ``nl-<lab>-*``;
    the bridge, veths, nft table and qdiscs go with them;
-5. a workdir the lab made itself is removed, then the manifest; the last
+5. a workdir the lab made itself is removed (unless `keep_workdir`: `netlab down`
+   keeps the daemons' logs and state unless asked), then the manifest; the last
    lab to go puts back the host's ARP table limits (`netlab.hostlimits`).
 
 Nothing is matched by process name or command line.
@@ -120,7 +121,8 @@ class SweepResult:
     processes: list[int] = field(default_factory=list)
     namespaces: list[str] = field(default_factory=list)
     containers: list[str] = field(default_factory=list)
-    workdir: str | None = None
+    workdir: str | None = None  # the workdir removed
+    kept: str | None = None  # the workdir left in place (`keep_workdir`, or not the lab's own)
     manifest: bool = False
 
     @property
@@ -165,7 +167,9 @@ def leftovers(name: str) -> list[str]:
     return left
 
 
-def sweep(name: str, record: Manifest | None, grace: float = TERM_GRACE) -> SweepResult:
+def sweep(
+    name: str, record: Manifest | None, grace: float = TERM_GRACE, *, keep_workdir: bool = False
+) -> SweepResult:
     """Remove everything of lab `name` (see the module doc); KernelError if something stays."""
     naming.check_lab_name(name)
     result = SweepResult()
@@ -195,10 +199,13 @@ def sweep(name: str, record: Manifest | None, grace: float = TERM_GRACE) -> Swee
     if errors:
         # The manifest stays, so that another `netlab down` can finish the job.
         raise KernelError(f"lab {name}: " + "; ".join(errors))
-    owned = record.workdir if record is not None and record.workdir_owned else ""
-    if owned and Path(owned).exists():
-        shutil.rmtree(owned, ignore_errors=True)
-        result.workdir = owned
+    workdir = record.workdir if record is not None else ""
+    if workdir and Path(workdir).exists():
+        if record is not None and record.workdir_owned and not keep_workdir:
+            shutil.rmtree(workdir, ignore_errors=True)
+            result.workdir = workdir
+        else:
+            result.kept = workdir
     result.manifest = manifest.remove(name)
     hostlimits.restore_if_last()
     return result

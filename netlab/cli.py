@@ -1,10 +1,12 @@
 """The `netlab` command: bring labs up and down, look at them, run commands in robots.
 
-    netlab up NAME --robots N | -t FILE [--runtime namespace|docker] [--seed S] [--radius R]
-              [--spacing D] [--start]
-    netlab down NAME
-    netlab status [NAME]
-    netlab exec NAME ROBOT -- CMD...
+    netlab up NAME --robots N | -t FILE [--start] [--runtime namespace|docker] [--seed S]
+              [--radius R] [--spacing D] [--fleet F] [--workdir DIR] [--beacon-interval S]
+    netlab down NAME [--cleanup]
+    netlab status [NAME] [--json]
+    netlab exec NAME ROBOT -- CMD...  |  netlab exec --all NAME -- CMD...
+    netlab logs NAME|DIR ROBOT [-f] [-n N]
+    netlab pingall NAME [--count N] [--timeout S]
     netlab partition NAME GROUP GROUP...      (a group: r1,r2,...)
     netlab merge NAME
     netlab shape NAME ROBOT... [--loss %] [--delay MS] [--rate R] ... | --clear
@@ -15,41 +17,49 @@
     netlab report RUN_DIR
     netlab doctor
 
-`up` leaves the lab running after the command exits; `down` removes it,
-also when the program that made it died. Exit status 0 on success, 1 when
-netlab could not do it (the message says why) or a scenario's check failed,
-2 for a bad command line or scenario file, 3 when a scenario was skipped
-(this sdfrd lacks an option it needs).
+`up` leaves the lab running after the command exits; `down` removes it (also when the
+program that made it died) and keeps its folder of daemon logs unless --cleanup.  Exit
+status 0 on success, 1 when netlab could not do it (the message says why), a scenario's
+check failed or pingall found a linked pair silent, 2 for a bad command line or scenario
+file, 3 when a scenario was skipped (this sdfrd lacks an option it needs); `exec` exits
+with the command's status (with --all, the worst).  The reference is docs/netlab-cli.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
-import json
 import os
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Sequence
-from dataclasses import replace
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from netlab import cleanup, docker, kernel, manifest, naming
+from netlab import docker, naming
 from netlab.capture import DEFAULT_BPF
 from netlab.doctor import format_report, probe
-from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError, missing_extra
-from netlab.lab import Lab
-from netlab.manifest import Manifest
-from netlab.ranges import UnitDisc
+from netlab.errors import NetlabError, UnknownRobotError, missing_extra
+from netlab.labcli import (
+    cmd_down,
+    cmd_exec,
+    cmd_logs,
+    cmd_merge,
+    cmd_partition,
+    cmd_pingall,
+    cmd_shape,
+    cmd_status,
+    cmd_up,
+    lab_record,
+)
 from netlab.robots import RUNTIMES
 from sdfr import version_text
+from sdfr.argparsing import HintingParser
+from sdfr.hints import did_you_mean
 
-if TYPE_CHECKING:
-    from netlab.scenario import Scenario
+NAME_HELP = "the lab's name (`netlab status` lists them)"
 
 
 def _lab_name(text: str) -> str:
@@ -112,12 +122,17 @@ def _runtime_options(p: argparse.ArgumentParser, default: str | None) -> None:
     )
 
 
+def _name(p: argparse.ArgumentParser, what: str = NAME_HELP) -> None:
+    p.add_argument("name", type=_lab_name, metavar="NAME", help=what)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = HintingParser(
         prog="netlab",
         description="A fleet of SDfR robots on this machine: one network namespace per robot "
         "(a namespace, or a container's), running the real sdfrd, on a shared medium. "
         "Needs root.",
+        epilog="`netlab ACTION --help` describes an action; docs/netlab-cli.md is the reference.",
     )
     p.add_argument("--version", action="version", version=version_text("netlab"))
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -127,14 +142,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="create a lab and leave it running",
         description="Create a lab and leave it running: N robots r1..rN, or the robots, kinds, "
         "positions and medium of a topology file (a scenario file whose steps only lay out the "
-        "medium: partition, merge, move, quality, shape). Flags override the file.",
+        "medium: partition, merge, move, quality, shape). Flags override the file. Without "
+        "--start no daemon runs (the command says so).",
     )
-    up.add_argument("name", type=_lab_name, metavar="NAME", help="lab name: 1-8 of a-z 0-9")
+    _name(up, "the new lab's name: 1-8 of a-z 0-9")
     how = up.add_mutually_exclusive_group(required=True)
     how.add_argument("--robots", type=_positive_int, metavar="N", help="robots r1..rN")
     how.add_argument(
-        "-t", "--topology", metavar="FILE", help="a topology (or scenario) file: see above"
+        "-t",
+        "--topology",
+        metavar="FILE",
+        help="a topology (or scenario) file, or a bundled scenario's name: see above",
     )
+    up.add_argument("--start", action="store_true", help="start sdfrd on every robot")
     _runtime_options(up, None)
     up.add_argument("--seed", type=int, help="seed of the robots' MACs (default 0)")
     up.add_argument("--radius", type=_metres, help="radio range in metres (default 50)")
@@ -144,8 +164,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="robots stand on a line this many metres apart (default 0: all in one spot)",
     )
     up.add_argument("--fleet", type=int, help="fleet id 0-255 (default 1)")
-    up.add_argument("--workdir", help="where daemons keep state and logs (default: a new /tmp dir)")
-    up.add_argument("--start", action="store_true", help="start sdfrd on every robot")
+    up.add_argument(
+        "--workdir",
+        metavar="DIR",
+        help="the lab's folder: daemon logs and state (default: a new /tmp/netlab-NAME-* dir)",
+    )
     up.add_argument(
         "--beacon-interval",
         type=float,
@@ -154,14 +177,103 @@ def build_parser() -> argparse.ArgumentParser:
         help="sdfrd's beacon interval with --start (default: the topology file's, else sdfrd's)",
     )
 
-    part = sub.add_parser(
-        "partition", help="cut a running lab's medium into groups (robots in none: one more)"
+    down = sub.add_parser(
+        "down",
+        help="stop and remove a lab (also one whose runner died)",
+        description="Stop the lab's processes and remove its namespaces, containers and "
+        "manifest. Its folder (daemon logs and state) is kept, and its path printed, unless "
+        "--cleanup.",
     )
-    part.add_argument("name", type=_lab_name, metavar="NAME")
-    part.add_argument("groups", nargs="+", type=_group, metavar="GROUP", help="r1,r2,...")
+    _name(down)
+    down.add_argument(
+        "--cleanup", action="store_true", help="also remove the lab's folder (daemon logs, state)"
+    )
 
-    merge = sub.add_parser("merge", help="end a running lab's partition")
-    merge.add_argument("name", type=_lab_name, metavar="NAME")
+    status = sub.add_parser(
+        "status",
+        help="show labs: robots, daemons, the medium's partition and shaping",
+        description="Each lab: who runs it, its folder, the medium in effect (partition, pair "
+        "loss, links up), and a table of its robots (address, MAC, kind, namespace, sdfrd, how "
+        "many robots each hears, its link shaping).",
+    )
+    status.add_argument(
+        "name", type=_lab_name, nargs="?", metavar="NAME", help="one lab (default: every lab)"
+    )
+    status.add_argument("--json", action="store_true", help="machine-readable output")
+
+    ex = sub.add_parser(
+        "exec",
+        help="run a command in a robot, or in every robot (--all)",
+        description="Run CMD inside the robot (its namespace, or its container) with its "
+        "exit status; with --all in every robot at once, each output line prefixed with the "
+        "robot's name, exit status the worst of them.",
+    )
+    _name(ex)
+    ex.add_argument("--all", action="store_true", help="every robot of the lab (no ROBOT)")
+    ex.add_argument(
+        "cmd",
+        nargs=argparse.REMAINDER,
+        metavar="ROBOT -- CMD...",
+        help="the robot (not with --all), then the command after --",
+    )
+
+    logs = sub.add_parser(
+        "logs",
+        help="print a robot's daemon log (-f: follow it)",
+        description="Print the log of the robot's sdfrd, from a lab that is up, or from a "
+        "lab's folder kept by `netlab down`.",
+    )
+    logs.add_argument(
+        "lab", metavar="NAME|DIR", help="a lab that is up, or the folder `netlab down` kept"
+    )
+    logs.add_argument("robot", metavar="ROBOT", help="the robot, e.g. r1")
+    logs.add_argument(
+        "-f", "--follow", action="store_true", help="keep printing what is added (Ctrl-C ends)"
+    )
+    logs.add_argument(
+        "-n", "--lines", type=int, metavar="N", help="only the last N lines (default: all)"
+    )
+
+    pa = sub.add_parser(
+        "pingall",
+        help="every robot pings every other: a loss matrix",
+        description="Every robot pings every other over the medium (all at once) and a matrix "
+        "of loss is printed: a pair the medium links must answer, one it cuts should not. Exit "
+        "status 1 if a linked pair did not answer.",
+    )
+    _name(pa)
+    pa.add_argument(
+        "--count", type=_positive_int, default=3, metavar="N", help="pings per pair (default 3)"
+    )
+    pa.add_argument(
+        "--timeout",
+        type=_seconds,
+        default=1.0,
+        metavar="S",
+        help="seconds to wait for the last reply (default 1)",
+    )
+
+    part = sub.add_parser(
+        "partition",
+        help="cut a running lab's medium into groups",
+        description="Cut every link between the groups; the robots in no group form one more "
+        "group. Ends the previous partition.",
+    )
+    _name(part)
+    part.add_argument(
+        "groups",
+        nargs="+",
+        type=_group,
+        metavar="GROUP",
+        help="robots joined by commas, e.g. r1,r2 r3,r4",
+    )
+
+    merge = sub.add_parser(
+        "merge",
+        help="end a running lab's partition",
+        description="End the partition: the range model alone decides the links again.",
+    )
+    _name(merge)
 
     shp = sub.add_parser(
         "shape",
@@ -171,28 +283,14 @@ def build_parser() -> argparse.ArgumentParser:
         "duplicate, reorder and corrupt are refused naming the missing module. The new shape "
         "replaces the robot's old one; --clear removes it.",
     )
-    shp.add_argument("name", type=_lab_name, metavar="NAME")
-    shp.add_argument("robots", nargs="+", metavar="ROBOT")
+    _name(shp)
+    shp.add_argument("robots", nargs="+", metavar="ROBOT", help="the robots to shape")
     shp.add_argument("--delay", type=float, metavar="MS", help="delay in ms (default 0)")
     shp.add_argument("--jitter", type=float, metavar="MS", help="jitter in ms, with a delay")
     for what in ("loss", "duplicate", "reorder", "corrupt"):
         shp.add_argument(f"--{what}", type=float, metavar="%", help=f"{what} in %% (default 0)")
     shp.add_argument("--rate", metavar="R", help="rate in bit/s or like 1mbit (default none)")
     shp.add_argument("--clear", action="store_true", help="remove all shaping")
-
-    down = sub.add_parser("down", help="stop and remove a lab (also one whose runner died)")
-    down.add_argument("name", type=_lab_name, metavar="NAME")
-
-    status = sub.add_parser("status", help="labs, their robots, namespaces and daemons")
-    status.add_argument("name", type=_lab_name, nargs="?", metavar="NAME")
-    status.add_argument("--json", action="store_true", help="machine-readable output")
-
-    ex = sub.add_parser(
-        "exec", help="run a command inside a robot (its namespace, or its container)"
-    )
-    ex.add_argument("name", type=_lab_name, metavar="NAME")
-    ex.add_argument("robot", metavar="ROBOT")
-    ex.add_argument("cmd", nargs=argparse.REMAINDER, metavar="-- CMD...")
 
     rn = sub.add_parser(
         "run",
@@ -223,8 +321,8 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--lab", type=_lab_name, metavar="NAME", help="lab name (default: made unique)")
 
     cap = sub.add_parser("capture", help="capture a robot's (or the medium's) traffic to pcap")
-    cap.add_argument("name", type=_lab_name, metavar="NAME", help="a lab brought up with up")
-    cap.add_argument("target", metavar="ROBOT|medium")
+    _name(cap, "a lab brought up with `netlab up`")
+    cap.add_argument("target", metavar="ROBOT|medium", help="a robot, or the medium's bridge")
     cap.add_argument(
         "--out",
         required=True,
@@ -242,252 +340,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--duration", type=_seconds, metavar="S", help="stop after S seconds (default: at Ctrl-C)"
     )
 
-    rep = sub.add_parser("report", help="write a run folder's report.json and plots again")
-    rep.add_argument("run_dir", metavar="RUN_DIR")
+    rep = sub.add_parser(
+        "report",
+        help="write a run folder's report.json and plots again",
+        description="Read a run folder's run.json and pcaps; write report.json, the plots "
+        "and report.html again.",
+    )
+    rep.add_argument("run_dir", metavar="RUN_DIR", help="a folder `netlab run` wrote")
 
-    sub.add_parser("doctor", help="what this kernel supports, and what follows")
+    sub.add_parser(
+        "doctor",
+        help="check what this kernel supports, and what follows",
+        description="Try each kernel feature netlab uses in a throwaway namespace and say "
+        "what follows from what is missing. Exit status 1 when no lab can run here.",
+    )
     return p
-
-
-def _topology(args: argparse.Namespace) -> Scenario:
-    """The lab `up` makes, as a scenario with no timeline: the file's, flags overriding it."""
-    from netlab import scenario
-
-    flags = {
-        key: getattr(args, key)
-        for key in ("seed", "fleet", "radius", "spacing", "runtime")
-        if getattr(args, key) is not None
-    }
-    try:
-        if args.topology is None:
-            return scenario.Scenario("up", robots=args.robots, **{"spacing": 0.0, **flags})
-        sc = scenario.load(args.topology)
-        scenario.check_layout(sc)
-        return replace(sc, **flags)
-    except scenario.ScenarioError as exc:
-        raise NetlabError(str(exc)) from None
-
-
-def cmd_up(args: argparse.Namespace) -> int:
-    from netlab import scenario
-
-    sc = _topology(args)
-    lab = Lab(
-        args.name,
-        seed=sc.seed,
-        fleet=sc.fleet,
-        workdir=Path(args.workdir) if args.workdir else None,
-        range_model=UnitDisc(sc.radius),
-        addressing=sc.addressing,
-        runtime=sc.runtime,
-        image=args.image,
-    )
-    t0 = time.monotonic()
-    lab.up()
-    try:
-        scenario.add_robots(lab, sc)
-        kinds = {r.runtime for r in lab.robots.values()}
-        kind = (
-            " (containers)"
-            if kinds == {"docker"}
-            else " (some containers)"
-            if len(kinds) > 1
-            else ""
-        )
-        n = len(sc.names)
-        print(f"lab {args.name}: {n} robots{kind} up in {time.monotonic() - t0:.2f} s")
-        for line in scenario.lay_out(lab, sc):
-            print(f"  {line}")
-        if args.start:
-            t1 = time.monotonic()
-            opts: dict[str, Any] = dict(sc.sdfrd)
-            beacon = args.beacon_interval or (sc.beacon if args.topology else None)
-            if beacon is not None:
-                opts["beacon_interval"] = beacon
-            lab.start_all(timeout=max(60.0, 2.0 * n), **opts)
-            print(f"sdfrd healthy on {n} robots in {time.monotonic() - t1:.2f} s")
-    except BaseException:
-        lab.down()
-        raise
-    print(f"workdir {lab.workdir}")
-    print(f"`netlab status {args.name}` shows it; `netlab down {args.name}` removes it")
-    lab.detach()
-    return 0
-
-
-@contextlib.contextmanager
-def _attached(name: str) -> Iterator[Lab]:
-    """The running lab `name`, taken over for one change (`Lab.attach`), then left again."""
-    with manifest.locked(name):
-        lab = Lab.attach(name)
-        try:
-            yield lab
-        finally:
-            lab.detach()
-
-
-def _links_summary(lab: Lab) -> str:
-    links = lab.links()
-    pairs = {frozenset(p) for p in links}
-    return f"{len(pairs)} linked pairs of {len(lab.robots)} robots"
-
-
-def cmd_partition(args: argparse.Namespace) -> int:
-    with _attached(args.name) as lab:
-        lab.partition(args.groups)
-        rest = [r for r in lab.robots if not any(r in g for g in args.groups)]
-        groups = [",".join(g) for g in args.groups] + ([",".join(rest)] if rest else [])
-        print(f"lab {args.name}: partition {' | '.join(groups)}; {_links_summary(lab)}")
-    return 0
-
-
-def cmd_merge(args: argparse.Namespace) -> int:
-    with _attached(args.name) as lab:
-        lab.merge()
-        print(f"lab {args.name}: merged; {_links_summary(lab)}")
-    return 0
-
-
-SHAPE_PARAMS = ("delay", "jitter", "loss", "duplicate", "reorder", "corrupt", "rate")
-
-
-def cmd_shape(args: argparse.Namespace) -> int:
-    params = {k: getattr(args, k) for k in SHAPE_PARAMS if getattr(args, k) is not None}
-    if args.clear == bool(params):
-        raise NetlabError("shape: give shaping parameters (--loss, --delay, ...) or --clear")
-    with _attached(args.name) as lab:
-        for robot in args.robots:
-            lab.robot(robot)  # all known before any is shaped
-        for robot in args.robots:
-            shape = lab.shape(robot, **params)
-            what = ", ".join(f"{k} {v}" for k, v in dataclasses.asdict(shape).items() if v)
-            print(f"lab {args.name}: {robot}: {what or 'no shaping'}")
-    return 0
-
-
-def cmd_down(args: argparse.Namespace) -> int:
-    result = cleanup.sweep(args.name, manifest.load(args.name))
-    if result.empty:
-        print(f"no lab {args.name}: nothing to remove")
-        return 0
-    parts = [f"{len(result.namespaces)} namespaces"]
-    if result.containers:
-        parts.append(f"{len(result.containers)} containers")
-    if result.processes:
-        parts.append(f"{len(result.processes)} processes")
-    if result.workdir:
-        parts.append(f"workdir {result.workdir}")
-    print(f"lab {args.name} removed: " + ", ".join(parts))
-    return 0
-
-
-def _proc_alive(rec: manifest.ProcRecord) -> bool:
-    return cleanup.running(rec.pid) and cleanup.start_time(rec.pid) == rec.start
-
-
-def lab_status(record: Manifest) -> dict[str, Any]:
-    """What is left of a lab, from its manifest and the kernel."""
-    present = set(kernel.list_ns(naming.prefix(record.name)))
-    daemons: dict[str, int] = {}
-    for rec in record.processes:
-        if rec.role == "sdfrd" and _proc_alive(rec):
-            daemons[rec.robot] = rec.pid
-    runner_alive = (
-        cleanup.running(record.runner_pid)
-        and cleanup.start_time(record.runner_pid) == record.runner_start
-    )
-    return {
-        "name": record.name,
-        "runner": {"pid": record.runner_pid, "alive": runner_alive, "detached": record.detached},
-        "workdir": record.workdir,
-        "medium": naming.air_ns(record.name) in present,
-        "robots": {
-            name: {
-                "runtime": r.runtime,
-                "namespace": r.ns,
-                "present": r.ns in present,
-                "address": r.address,
-                "mac": r.mac,
-                "sdfrd": daemons.get(name),
-            }
-            for name, r in record.robots.items()
-        },
-        "processes": sum(1 for p in record.processes if _proc_alive(p)),
-    }
-
-
-def orphans() -> dict[str, list[str]]:
-    """Namespaces named like a lab's whose lab has no manifest: lab name -> namespaces."""
-    known = set(manifest.names())
-    out: dict[str, list[str]] = {}
-    for ns in kernel.list_ns(naming.NS_PREFIX):
-        lab = ns[len(naming.NS_PREFIX) :].split("-", 1)[0]
-        if naming.LAB_NAME_RE.match(lab) and lab not in known and "-" in ns[3:]:
-            out.setdefault(lab, []).append(ns)
-    return out
-
-
-def cmd_status(args: argparse.Namespace) -> int:
-    names = [args.name] if args.name else manifest.names()
-    labs = []
-    for name in names:
-        record = manifest.load(name)
-        if record is None:
-            if args.name:
-                left = kernel.list_ns(naming.prefix(name))
-                hint = f" (but namespaces {', '.join(left)}: `netlab down {name}`)" if left else ""
-                raise LabNotFoundError(f"no lab {name} is up{hint}")
-            continue
-        labs.append(lab_status(record))
-    stray = {k: v for k, v in orphans().items() if not args.name or k == args.name}
-    if args.json:
-        print(json.dumps({"labs": labs, "orphans": stray}, indent=1))
-        return 0
-    if not labs and not stray:
-        print("no labs")
-    for lab in labs:
-        runner = lab["runner"]
-        if runner["alive"]:
-            who = f"run by pid {runner['pid']}"
-        elif runner["detached"]:
-            who = "left up (netlab up)"  # its runner's exit is how `up` ends: no failure
-        else:
-            who = f"its runner (pid {runner['pid']}) DIED: `netlab down {lab['name']}`"
-        print(f"lab {lab['name']}: {len(lab['robots'])} robots, {who}, workdir {lab['workdir']}")
-        if not lab["medium"]:
-            print("  medium namespace MISSING")
-        for name, r in lab["robots"].items():
-            ns = "ok" if r["present"] else "MISSING"
-            daemon = f"sdfrd pid {r['sdfrd']}" if r["sdfrd"] else "no sdfrd"
-            kind = "container" if r["runtime"] == "docker" else "namespace"
-            print(f"  {name:<12} {r['address']:<16} {r['mac']}  {kind} {ns}  {daemon}")
-    for lab_name, nss in sorted(stray.items()):
-        print(f"left behind (no manifest): {', '.join(nss)}; `netlab down {lab_name}` removes them")
-    return 0
-
-
-def cmd_exec(args: argparse.Namespace) -> int:
-    cmd = list(args.cmd)
-    if cmd and cmd[0] == "--":
-        cmd = cmd[1:]
-    if not cmd:
-        raise NetlabError("exec: no command given (netlab exec NAME ROBOT -- CMD...)")
-    record = manifest.load(args.name)
-    if record is None:
-        raise LabNotFoundError(f"no lab {args.name} is up (`netlab status` lists labs)")
-    robot = record.robots.get(args.robot)
-    if robot is None:
-        raise UnknownRobotError(
-            f"lab {args.name} has no robot {args.robot!r} (robots: {', '.join(record.robots)})"
-        )
-    if robot.ns not in kernel.list_ns():
-        raise NetlabError(f"the namespace {robot.ns} of robot {args.robot} is gone")
-    if robot.runtime == "docker":
-        argv = docker.exec_argv(robot.ns, cmd, stdin=True, tty=sys.stdin.isatty())
-    else:
-        argv = kernel.ns_argv(robot.ns, cmd)
-    sys.stdout.flush()
-    os.execvp(argv[0], argv)
 
 
 EXIT_FAILED = 1
@@ -547,16 +414,15 @@ def _span(least: float, most: float) -> str:
 def cmd_capture(args: argparse.Namespace) -> int:
     from netlab.capture import Capture
 
-    record = manifest.load(args.name)
-    if record is None:
-        raise LabNotFoundError(f"no lab {args.name} is up (`netlab status` lists labs)")
+    record = lab_record(args.name)
     if args.target == "medium":
         ns, iface = naming.air_ns(args.name), naming.BRIDGE
     else:
         robot = record.robots.get(args.target)
         if robot is None:
             raise UnknownRobotError(
-                f"lab {args.name} has no robot {args.target!r} (robots: "
+                f"lab {args.name} has no robot {args.target!r}"
+                f"{did_you_mean(args.target, [*record.robots, 'medium'])} (robots: "
                 f"{', '.join(record.robots)}; or medium)"
             )
         ns, iface = robot.ns, naming.ROBOT_IFACE
@@ -641,6 +507,8 @@ COMMANDS = {
     "down": cmd_down,
     "status": cmd_status,
     "exec": cmd_exec,
+    "logs": cmd_logs,
+    "pingall": cmd_pingall,
     "partition": cmd_partition,
     "merge": cmd_merge,
     "shape": cmd_shape,

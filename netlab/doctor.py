@@ -197,8 +197,9 @@ def report(caps: Capabilities) -> list[tuple[str, bool, str]]:
             caps.netem,
             "delay, jitter, loss, duplicate, reorder, corrupt, rate on robot links"
             if caps.netem
-            else "no delay/jitter/duplicate/reorder/corrupt (they raise ShapingUnsupported); "
-            f"loss goes through nftables, rate through tbf; {vm}",
+            else "netlab shape refuses delay, jitter, duplicate, reorder and corrupt here; "
+            "loss goes through nftables, rate through tbf. For them: `modprobe sch_netem`, or a "
+            f"kernel with it; {vm}",
         ),
         (
             "tc tbf (sch_tbf)",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 import subprocess
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -41,6 +42,18 @@ def open_ns(name: str) -> IPRoute:
         raise KernelError(f"network namespace {name} does not exist (was the lab taken down?)")
     with kernel_errors(f"opening network namespace {name}"):
         return IPRoute(netns=name, flags=0)
+
+
+def addresses(name: str, ifname: str, doing: str) -> list[str]:
+    """The IPv4 addresses interface `ifname` of namespace `name` has right now."""
+    ipr = open_ns(name)
+    try:
+        with kernel_errors(doing):
+            index = ipr.link_lookup(ifname=ifname)[0]
+            found = ipr.get_addr(family=socket.AF_INET, index=index)
+            return [str(a.get_attr("IFA_ADDRESS")) for a in found]
+    finally:
+        ipr.close()
 
 
 def remove_ns(name: str) -> bool:

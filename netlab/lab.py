@@ -26,7 +26,6 @@ import contextlib
 import dataclasses
 import os
 import signal
-import socket
 import subprocess
 import tempfile
 import time
@@ -460,14 +459,8 @@ class Lab:
     def live_addresses(self, ref: RobotRef) -> list[str]:
         """The IPv4 addresses eth0 has right now (with `addressing="auto"`, sdfrd's choice)."""
         robot = self.robot(ref)
-        ipr = kernel.open_ns(robot.ns)
-        try:
-            with kernel_errors(f"reading the addresses of robot {robot.name}"):
-                eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
-                found = ipr.get_addr(family=socket.AF_INET, index=eth)
-                return [str(a.get_attr("IFA_ADDRESS")) for a in found]
-        finally:
-            ipr.close()
+        doing = f"reading the addresses of robot {robot.name}"
+        return kernel.addresses(robot.ns, naming.ROBOT_IFACE, doing)
 
     def positions(self) -> dict[str, Pos]:
         return dict(self.topology.positions)

@@ -107,7 +107,11 @@ class Manifest:
                 containers=[str(c) for c in data.get("containers", [])],
             )
         except (KeyError, TypeError, ValueError) as exc:
-            raise NetlabError(f"unreadable lab manifest: {exc!r}") from None
+            what = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise NetlabError(
+                f"lab manifest {path_of(str(data.get('name', '?')))} is unreadable ({what}): "
+                "`netlab down NAME` sweeps the lab by its name"
+            ) from None
 
 
 def claim(manifest: Manifest) -> Path:

@@ -35,6 +35,7 @@ from netlab.scenario.spec import (
 )
 from netlab.scenario.steps import STEPS, Check, Step
 from sdfr._compat import tomllib  # (tomllib is 3.11+; SDfR runs on 3.10 too)
+from sdfr.hints import did_you_mean
 
 BUNDLED_DIR = Path(__file__).parent.parent / "scenarios"
 TOP_LEVEL = ("scenario", "groups", "positions", "kinds", "sdfrd", "step")
@@ -84,11 +85,11 @@ class _Fields:
 
     def done(self) -> None:
         if self.rest:
-            extra = ", ".join(sorted(self.rest))
-            known = ", ".join(self.known)
+            extra = sorted(self.rest)
+            hint = did_you_mean(extra[0], self.known)
             raise ScenarioError(
-                f"{self.where}: unknown field{'s' if len(self.rest) > 1 else ''} {extra} "
-                f"(this takes: {known})"
+                f"{self.where}: unknown field{'s' if len(extra) > 1 else ''} {', '.join(extra)}"
+                f"{hint} (this takes: {', '.join(self.known)})"
             )
 
 
@@ -132,8 +133,9 @@ def _parse_step(table: Any, where: str) -> Step:
         raise ScenarioError(f"{where}: expected a table ([[step]]), got {table!r}")
     actions = [k for k in table if k in STEPS]
     if not actions:
+        hint = next((h for k in table if (h := did_you_mean(k, STEPS))), "")
         raise ScenarioError(
-            f"{where}: no action; a step has one of: {', '.join(STEPS)} "
+            f"{where}: no action{hint}; a step has one of: {', '.join(STEPS)} "
             f"(it has: {', '.join(table) or 'nothing'})"
         )
     if len(actions) > 1:
@@ -150,7 +152,8 @@ def _parse_step(table: Any, where: str) -> Step:
         if cond_cls is None:
             known = ", ".join(CONDITIONS)
             raise ScenarioError(
-                f"{where}: {kind}: unknown condition {cond_kind!r} (one of {known})"
+                f"{where}: {kind}: unknown condition {cond_kind!r}"
+                f"{did_you_mean(cond_kind, CONDITIONS)} (one of {known})"
             )
         kw = read_fields(cls, f, skip=("condition",))
         step = cls(cond_cls(**read_fields(cond_cls, f)), **kw)
@@ -191,9 +194,10 @@ def from_dict(
     """A Scenario from a parsed scenario file (see the package's documentation)."""
     extra = [k for k in data if k not in TOP_LEVEL]
     if extra:
+        hint = did_you_mean(extra[0], TOP_LEVEL)
         raise ScenarioError(
-            f"{source}: unknown table or key {', '.join(map(repr, extra))} (a scenario file has "
-            "[scenario], [groups], [positions], [kinds], [sdfrd] and [[step]])"
+            f"{source}: unknown table or key {', '.join(map(repr, extra))}{hint} (a scenario file "
+            "has [scenario], [groups], [positions], [kinds], [sdfrd] and [[step]])"
         )
     f = _Fields(_table(data, "scenario", source), f"{source}: [scenario]")
     head = {"name": f.take("name", to_str, ... if name is None else name)}
@@ -246,6 +250,6 @@ def find(ref: str) -> Path:
     if found is not None:
         return found
     raise ScenarioError(
-        f"no scenario file {ref!r} and no bundled scenario of that name "
-        f"(bundled: {', '.join(bundled())})"
+        f"no scenario file {ref!r} and no bundled scenario of that name"
+        f"{did_you_mean(ref, bundled())} (bundled: {', '.join(bundled())})"
     )

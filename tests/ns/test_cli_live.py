@@ -46,7 +46,7 @@ def netlab(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]
 def name() -> Iterator[str]:
     lab = unique_lab_name()
     yield lab
-    netlab("down", lab)
+    netlab("down", lab, "--cleanup")
     assert manifest.load(lab) is None
 
 

@@ -386,7 +386,7 @@ def test_cli_up_exec_status_down() -> None:
         again = netlab_cli("up", name, "--robots", "1")
         assert again.returncode == 1 and "already up" in again.stderr
     finally:
-        down = netlab_cli("down", name)
+        down = netlab_cli("down", name, "--cleanup")
     assert down.returncode == 0 and "3 namespaces" in down.stdout
     assert netlab_cli("status", name).returncode == 1
 
@@ -444,7 +444,7 @@ time.sleep(600)
         assert lab_state["robots"]["b"]["sdfrd"] == info["sdfrd"]
 
         down = subprocess.run(
-            [sys.executable, "-m", "netlab.cli", "down", name],
+            [sys.executable, "-m", "netlab.cli", "down", name, "--cleanup"],
             capture_output=True,
             text=True,
             timeout=60,

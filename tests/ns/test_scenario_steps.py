@@ -338,4 +338,4 @@ def test_netlab_capture_on_a_lab_brought_up(
         assert {r.robot for r in mine if r.direction == "tx" and r.kind == "sdfr"} == {"r1"}
         assert {r.robot for r in analysis.read_pcap(air) if r.kind == "sdfr"} == {"r1", "r2"}
     finally:
-        assert cli.main(["down", name]) == 0
+        assert cli.main(["down", name, "--cleanup"]) == 0
