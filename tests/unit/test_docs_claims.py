@@ -1,7 +1,8 @@
 """Every test a document names as the proof of a claim exists.
 
-docs/security.md and the README name their proofs as ``test_file.py::test_name`` (or a whole
-``test_file.py``); a renamed or deleted test would leave a claim with nothing behind it.
+The README, CONTRIBUTING.md and every page of docs/ name their proofs as
+``test_file.py::test_name`` (or a whole ``test_file.py``); a renamed or deleted test would leave a
+claim with nothing behind it.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-DOCS = [ROOT / "README.md", ROOT / "docs" / "security.md"]
+DOCS = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", *sorted((ROOT / "docs").glob("*.md"))]
 #: `test_x.py::test_y` or `test_x.py`, in backquotes, optionally with a folder.
 REF = re.compile(r"`((?:[\w./-]*/)?(test_\w+\.py))(?:::(\w+))?`")
 
@@ -48,3 +49,8 @@ def test_every_test_a_document_names_exists(doc: Path) -> None:
     assert not missing, f"{doc.name} names tests that do not exist: {missing}"
     if doc.name == "security.md":
         assert len(refs) >= 30  # (the claims are there to be checked)
+
+
+def test_the_documents_are_found() -> None:
+    names = {d.name for d in DOCS}
+    assert {"README.md", "CONTRIBUTING.md", "security.md", "api.md", "scenarios.md"} <= names
