@@ -10,6 +10,9 @@
 * ``fleet_factory(n=3, *, beacon=0.5, spacing=1.0, start=True, **lab_kw)``: fleets on demand.
 * ``captured(lab, name)``: a context manager capturing every robot of `lab` and its medium;
   when the block fails, the pcaps are kept under runs/tests/ (the failure says where).
+* When a test (or its set-up) fails, the folders of the labs it made (daemon logs, state) are
+  copied, before the labs go down, to ``$SDFR_KEEP_LOGS/<test>-<time>-<pid>/<lab>/`` (default
+  runs/tests/), and the failure report gains a "daemon logs" section saying where.
 
 Each skips the test unless we are root (the ``root`` marker does it too).
 """
@@ -18,9 +21,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
+import stat
 import subprocess
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from datetime import datetime
 from functools import cache
 from pathlib import Path
@@ -40,6 +45,66 @@ RUNS = Path(__file__).resolve().parents[2] / "runs" / "tests"
 def run_folder(name: str) -> Path:
     """A new folder name under RUNS for a test's run called `name`."""
     return RUNS / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+
+
+def keep_folder(test: str) -> Path:
+    """Where a failed test's lab folders are kept: under $SDFR_KEEP_LOGS, else RUNS."""
+    base = os.environ.get("SDFR_KEEP_LOGS")
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", test).strip("_")[:80]
+    if not base:
+        return run_folder(name)
+    return Path(base).absolute() / f"{name}-{datetime.now():%Y%m%d-%H%M%S}-{os.getpid()}"
+
+
+def _not_files(folder: str, names: list[str]) -> list[str]:
+    """copytree's ignore: sockets, fifos and devices (a daemon's api.sock) are not copied."""
+    out = []
+    for name in names:
+        try:
+            mode = os.lstat(os.path.join(folder, name)).st_mode
+        except OSError:
+            out.append(name)
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            out.append(name)
+    return out
+
+
+def keep_lab_folders(labs: list[Lab], folder: Path) -> list[str]:
+    """Copy each lab's folder (its robots' daemon logs and state) into `folder`/<lab>; one line
+    per lab saying where it went, or why it could not."""
+    lines = []
+    for lab in labs:
+        src = lab.workdir
+        if not str(src) or src == Path() or not src.is_dir():
+            lines.append(f"lab {lab.name}: no folder to keep ({src or 'not up'})")
+            continue
+        dest = folder / lab.name
+        try:
+            shutil.copytree(src, dest, ignore=_not_files, dirs_exist_ok=True)
+        except (shutil.Error, OSError) as exc:  # a log the daemon was still writing: keep the rest
+            lines.append(f"lab {lab.name}: some files not copied ({str(exc)[:200]})")
+        logs = sorted(p.relative_to(dest).as_posix() for p in dest.glob("*/sdfrd.log"))
+        lines.append(f"lab {lab.name}: daemon logs kept in {dest} ({', '.join(logs) or 'none'})")
+    return lines
+
+
+#: The labs a test made (lab_factory), for the failure report.
+LABS = pytest.StashKey[list[Lab]]()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, Any, None]:
+    outcome = yield
+    report = outcome.get_result()
+    labs = item.stash.get(LABS, [])
+    if not (report.failed and labs) or report.when == "teardown":
+        return
+    lines = keep_lab_folders(labs, keep_folder(item.nodeid.split("/")[-1]))
+    item.stash[LABS] = []  # kept once: a failed set-up has no call
+    report.sections.append(("daemon logs", "\n".join(lines)))
 
 
 def discard(folder: Path) -> None:
@@ -116,10 +181,12 @@ def _take_down(lab: Lab) -> list[str]:
 
 
 @pytest.fixture
-def lab_factory() -> Iterator[Callable[..., Lab]]:
-    """``make(**lab_kw) -> Lab``: up, uniquely named; every one is taken down after the test."""
+def lab_factory(request: pytest.FixtureRequest) -> Iterator[Callable[..., Lab]]:
+    """``make(**lab_kw) -> Lab``: up, uniquely named; every one is taken down after the test
+    (its folder kept first when the test failed: see the module doc)."""
     need_root()
     labs: list[Lab] = []
+    request.node.stash[LABS] = labs
 
     def make(**kw: Any) -> Lab:
         lab = Lab(unique_lab_name(), **kw)
