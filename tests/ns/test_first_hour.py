@@ -132,8 +132,8 @@ def test_the_readme_first_hour_in_a_fresh_clone(tmp_path: Path) -> None:
         stdout, stderr, status = _text(exc.stdout), _text(exc.stderr) + "\n(timed out)", -1
     if status != 0:
         _down_labs_it_made(clone, stdout)
-    for workdir in re.findall(r"^workdir (/tmp/\S+)$", stdout, flags=re.M):
-        shutil.rmtree(workdir, ignore_errors=True)  # `netlab down` keeps a lab's folder
+    for folder in re.findall(r"^folder (/tmp/[^\s,()]+)", stdout, flags=re.M):
+        shutil.rmtree(folder, ignore_errors=True)  # a lab's folder, if a failure left it
     output = stdout + stderr
     assert status == 0, f"the README's first hour failed in {clone}:\n{output[-6000:]}"
     assert "every command exited 0" in stdout
