@@ -107,3 +107,13 @@ def test_the_topology_steps_are_documented() -> None:
     assert not missing, f"topology steps missing: {missing}"
     allowed = set(re.findall(r"may only be (.*?); any other", text, flags=re.S)[0].split("`")[1::2])
     assert allowed == {cls.kind for cls in LAYOUT_STEPS}
+
+
+def test_the_examples_are_valid_files() -> None:
+    """Each TOML example of the page loads; the topology example is a valid topology."""
+    from netlab.scenario import check_layout, loads
+
+    examples = re.findall(r"```toml\n(.*?)```", DOC.read_text(), flags=re.S)
+    assert len(examples) == 2
+    assert loads(examples[0]).steps
+    check_layout(loads(examples[1]))
