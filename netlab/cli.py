@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="A fleet of SDfR robots on this machine: one network namespace per robot "
         "(a namespace, or a container's), running the real sdfrd, on a shared medium. "
         "Needs root.",
-        epilog="`netlab ACTION --help` describes an action; docs/netlab-cli.md is the reference.",
+        epilog="`netlab COMMAND --help` describes a command; docs/netlab-cli.md is the reference.",
     )
     p.add_argument("--version", action="version", version=version_text("netlab"))
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -203,6 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ex = sub.add_parser(
         "exec",
+        usage="netlab exec NAME ROBOT -- CMD...\n       netlab exec --all NAME -- CMD...",
         help="run a command in a robot, or in every robot (--all)",
         description="Run CMD inside the robot (its namespace, or its container) with its "
         "exit status; with --all in every robot at once, each output line prefixed with the "
@@ -236,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     pa = sub.add_parser(
         "pingall",
-        help="every robot pings every other: a loss matrix",
+        help="ping every robot from every other: a loss matrix",
         description="Every robot pings every other over the medium (all at once) and a matrix "
         "of loss is printed: a pair the medium links must answer, one it cuts should not. Exit "
         "status 1 if a linked pair did not answer.",

@@ -2,7 +2,7 @@
 
     p = HintingParser(prog="netlab")   # subparsers inherit the class
     p.parse_args(["stauts"])
-    # netlab: unknown action 'stauts' (did you mean 'status'?); `netlab --help` lists them
+    # netlab: unknown command 'stauts' (did you mean 'status'?); `netlab --help` shows usage
 
 Exit status 2, as argparse's own errors.
 """
@@ -45,7 +45,7 @@ class HintingParser(argparse.ArgumentParser):
         if choice is not None:
             word = _unquote(choice["word"])
             offered = [_unquote(q) for q in _QUOTED.findall(message[choice.end() :])]
-            what = "action" if choice["arg"] == "COMMAND" else f"value for {choice['arg']}"
+            what = "command" if choice["arg"] == "COMMAND" else f"value for {choice['arg']}"
             close = closest(word, offered)
             hint = f" (did you mean {close!r}?)" if close else f" (one of {', '.join(offered)})"
             return f"unknown {what} {word!r}{hint}"

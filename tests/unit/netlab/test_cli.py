@@ -39,7 +39,7 @@ def test_every_argument_of_every_action_has_help() -> None:
 @pytest.mark.parametrize(
     ("argv", "expected"),
     [
-        (["stauts"], "netlab: unknown action 'stauts' (did you mean 'status'?)"),
+        (["stauts"], "netlab: unknown command 'stauts' (did you mean 'status'?)"),
         (["pingal", "x"], "(did you mean 'pingall'?)"),
         (["down", "lab1", "--clenaup"], "unknown option --clenaup (did you mean '--cleanup'?)"),
         (["up", "lab1", "--robts", "3"], "netlab up: unknown option --robts (did you mean"),

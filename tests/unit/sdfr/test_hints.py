@@ -39,7 +39,7 @@ def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
 @pytest.mark.parametrize(
     ("argv", "expected"),
     [
-        (["stauts"], "tool: unknown action 'stauts' (did you mean 'status'?)"),
+        (["stauts"], "tool: unknown command 'stauts' (did you mean 'status'?)"),
         (["up", "a", "--robots", "2", "--kind", "dokcer"], "(did you mean 'docker'?)"),
         (["up", "a", "--robts", "2"], "tool up: unknown option --robts (did you mean '--robots'?)"),
         (["up", "a", "--robots", "2", "--topolgy=x"], "unknown option --topolgy (did you mean"),
