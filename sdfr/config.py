@@ -60,6 +60,7 @@ class Config:
     ttl: int = 1
     addressing: str = "manual"
     log_level: str = "info"
+    log_format: str = "text"
     wifi: str = "auto"
     wifi_secret: str | None = field(default=None, repr=False)
     wifi_secret_file: Path | None = None
@@ -149,6 +150,8 @@ class Config:
             raise ConfigError(
                 f"log_level: must be debug, info, warning or error, got {self.log_level!r}"
             )
+        if self.log_format not in ("text", "json"):
+            raise ConfigError(f"log_format: must be text or json, got {self.log_format!r}")
         self._validate_wifi()
         if self.auth is not None and self.auth not in AUTH_MODES:
             raise ConfigError(
@@ -273,7 +276,8 @@ _HELP: dict[str, str] = {
     "state_dir": "directory of the durable state: registrations, history map (default "
     "/var/lib/sdfr as root, else $XDG_STATE_HOME/sdfr)",
     "beacon_interval": f"seconds between Alive beacons (default {BEACON_INTERVAL:g})",
-    "robot_id": "this robot's identity (default: derived from the interface's MAC)",
+    "robot_id": "this robot's identity (default: derived from the interface's MAC; the host "
+    "name on an interface without one, such as lo)",
     "group": f"IPv4 multicast group (default {wire.DEFAULT_GROUP})",
     "port": f"UDP port (default {wire.DEFAULT_PORT})",
     "miss_limit": "beacon periods of silence after which a peer is unreachable "
@@ -288,6 +292,9 @@ _HELP: dict[str, str] = {
     "moved on conflict (set it on robots); manual: leave the interface's addresses alone "
     "(default, so a workstation's address is never touched)",
     "log_level": "debug, info, warning or error (default info)",
+    "log_format": "text: one line a record, TIME COMPONENT LEVEL MESSAGE; json: one JSON object "
+    "a line (time, level, component, logger, message, and the fields of a fleet change) "
+    "(default text)",
     "wifi": "auto: when IFACE is wireless and a WiFi secret is configured, join the fleet's "
     "ad-hoc WiFi (wpa_supplicant + iw) before starting; off: never touch the radio "
     "(default auto)",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import fcntl
+import re
 import socket
 import struct
 from pathlib import Path
@@ -82,11 +83,29 @@ def index(iface: str) -> int:
         raise ConfigError(f"iface: no interface named {iface!r}") from None
 
 
+def is_loopback(iface: str) -> bool:
+    try:
+        return bool(int((_SYS / iface / "flags").read_text(), 16) & 0x8)  # IFF_LOOPBACK
+    except (OSError, ValueError):
+        return False
+
+
+def host_robot_id(hostname: str) -> str:
+    """`hostname` as a robot id (A-Z a-z 0-9 . _ -, starting with a letter or digit, at most
+    64 characters), or "" when nothing of it is left."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", hostname).strip("-._")[:64]
+
+
 def robot_id_from_mac(iface: str) -> str:
-    """The default robot id: stable for the hardware, readable (`robot-0242ac110002`)."""
+    """The default robot id: stable for the hardware, readable (`robot-0242ac110002`); on an
+    interface without a MAC address (lo), the host name (a first try on one machine)."""
     digits = mac(iface).replace(":", "")
-    if not digits or set(digits) == {"0"}:
+    if digits and set(digits) != {"0"}:
+        return f"robot-{digits}"
+    host = host_robot_id(socket.gethostname())
+    if not host:
         raise ConfigError(
-            f"robot_id: {iface} has no MAC address to derive an id from; pass --robot-id"
+            f"robot_id: {iface} has no MAC address and this machine no host name to derive an "
+            "id from; pass --robot-id"
         )
-    return f"robot-{digits}"
+    return host

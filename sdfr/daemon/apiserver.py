@@ -212,10 +212,6 @@ async def _run(cfg: Config, store: Store) -> None:
     await serve(cfg, store, stop)
 
 
-def _setup_logging(level: str) -> None:
-    logs.setup(f"%(asctime)s {PREFIX} %(levelname)s %(name)s: %(message)s", level)
-
-
 def _fail(message: str) -> int:
     print(f"{PREFIX}: error: {message}", file=sys.stderr)
     return 2
@@ -226,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = from_args(argv)
     except ConfigError as exc:
         return _fail(str(exc))
-    _setup_logging(cfg.log_level)
+    logs.setup("api", cfg.log_level, cfg.log_format)
     raise_fd_limit()
     # The registrations' writer thread takes the GIL back after each fsync; with the default
     # 5 ms switch interval a busy event loop makes it wait that long, each time.

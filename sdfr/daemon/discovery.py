@@ -28,6 +28,7 @@ from sdfr import auth, events, keystore, netif, status
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
 from sdfr.daemon import logs, notify
 from sdfr.daemon.describe import DescribeServer
+from sdfr.daemon.fleetlog import FleetLog
 from sdfr.daemon.unknownkeys import UnknownKeys
 from sdfr.errors import SdfrError
 from sdfr.model import PeerRecord
@@ -56,8 +57,9 @@ CONTROL_NAME = "discovery.sock"
 ERROR_WINDOW = 60.0
 
 
-def open_multicast_socket(cfg: Config, iface: str) -> socket.socket:
-    """A UDP socket on the SDfR port, in the group on `iface` only."""
+def open_multicast_socket(cfg: Config, iface: str, source: str = "") -> socket.socket:
+    """A UDP socket on the SDfR port, in the group on `iface` only; its multicast datagrams
+    from `source` when given (else the kernel's choice)."""
     ifindex = netif.index(iface)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
     try:
@@ -66,6 +68,8 @@ def open_multicast_socket(cfg: Config, iface: str) -> socket.socket:
         sock.bind(("0.0.0.0", cfg.port))
         mreqn = struct.pack("4s4si", socket.inet_aton(cfg.group), b"\0" * 4, ifindex)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreqn)
+        if source:
+            mreqn = struct.pack("4s4si", b"\0" * 4, socket.inet_aton(source), ifindex)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, mreqn)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, cfg.ttl)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 0)
@@ -113,13 +117,20 @@ class DiscoveryLayer:
         )
         self.core.set_subnet(netif.ipv4_network(self.iface) if self.address else None)
         saved = store.load_peers()
-        self.core.restore([r.shifted(-self.clock_offset) for r in saved])
+        history = [r.shifted(-self.clock_offset) for r in saved]
+        self.core.restore(history)
+        #: The fleet's changes in the log, one line each (on the core's clock).
+        self.fleet_log = FleetLog(replace(r, reachable=False) for r in history)
         # Nobody is reachable before we hear them again: tell the changes feed so.
         store.mark_all_unreachable(events.unreachable_at_start(saved))
         self.tracker = events.Tracker(
             cfg.indicator_thresholds, [replace(r, reachable=False) for r in saved]
         )
-        self.sock = open_multicast_socket(cfg, self.iface)
+        # On lo the kernel sends multicast from 0.0.0.0 (127.0.0.1 is host-scoped, and a
+        # multicast source must reach the link): from the address we announce, our own echo
+        # is recognised, and robots on one machine can answer each other.
+        loopback = netif.is_loopback(self.iface)
+        self.sock = open_multicast_socket(cfg, self.iface, self.address if loopback else "")
         self.control = self._open_control(cfg.state_dir / CONTROL_NAME)
         self.addressing: Addressing | None = None
         self.arp: ArpSocket | None = None
@@ -208,12 +219,13 @@ class DiscoveryLayer:
         self._pump()
         self._write_status()
         log.info(
-            "discovery up: robot %s fleet %d on %s (%s), boot %d",
+            "discovery up: robot %s fleet %d on %s (%s), boot %d; %d robots known from before",
             self.cfg.robot_id,
             self.cfg.fleet,
             self.iface,
             self.address or "no address",
             self.boot_id,
+            len(self.core.peers),
         )
         try:
             await self._stopping.wait()
@@ -308,6 +320,7 @@ class DiscoveryLayer:
             await asyncio.sleep(STATUS_PERIOD)
             tick += 1
             self._guard("periodic duties", self._check_address)
+            self._guard("logging the fleet", lambda: self.fleet_log.tick(time.monotonic()))
             if tick % SLOW_TICKS == 0:
                 self._guard("reloading the services", self._reload_services)
                 self._guard("reloading the keyring", self._reload_keyring)
@@ -437,6 +450,8 @@ class DiscoveryLayer:
     def _save(self) -> None:
         removed = self.core.take_removed()
         views = self.core.take_dirty()
+        now = time.monotonic()
+        self._guard("logging the fleet", lambda: self.fleet_log.observe(removed, views, now))
         try:
             self._save_views(removed, views)
         except StateWriteError as exc:
@@ -726,7 +741,7 @@ def main(argv: list[str] | None = None) -> int:
     except SdfrError as exc:
         print(f"sdfrd[discovery]: {exc}", flush=True)
         return 2
-    logs.setup("sdfrd[discovery] %(levelname)s %(message)s", cfg.log_level)
+    logs.setup("discovery", cfg.log_level, cfg.log_format)
     try:
         asyncio.run(_amain(cfg))
     except SdfrError as exc:

@@ -1,15 +1,24 @@
-"""Logging for the daemon's processes: one format each, and no message repeated in a flood."""
+"""Logging for the daemon's processes: one line format for every logger (or JSON lines), and
+no message repeated in a flood."""
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
 from collections.abc import Callable
+from datetime import datetime
 
 #: A message (its template, logger and level) repeated within this many seconds is counted, not
 #: written again.
 REPEAT_WINDOW = 60.0
+#: The formats of `--log-format`.
+FORMATS = ("text", "json")
+#: The attribute of a record (`extra={FIELDS: {...}}`) that carries its structured fields: a
+#: JSON line has them as keys of its own. A record that has them is let through the
+#: RepeatFilter: whoever logs it bounds its rate (the fleet changes' `FleetLog`).
+FIELDS = "fields"
 
 
 class RepeatFilter(logging.Filter):
@@ -29,6 +38,8 @@ class RepeatFilter(logging.Filter):
         self._seen = {k: v for k, v in self._seen.items() if k[0] != ident}
 
     def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, FIELDS, None) is not None:
+            return True
         # Each thread's own (a layer's thread forgets its kinds when it starts: `setup`).
         key = (record.thread, record.name, record.levelno, str(record.msg))
         now = self.clock()
@@ -44,17 +55,75 @@ class RepeatFilter(logging.Filter):
         return True
 
 
+def timestamp(created: float) -> str:
+    """`created` (seconds since the epoch) as local time with milliseconds and the UTC
+    offset: 2026-11-25T16:55:42.123+00:00 (RFC 3339; it sorts, and says its zone)."""
+    return datetime.fromtimestamp(created).astimezone().isoformat(timespec="milliseconds")
+
+
+class LineFormatter(logging.Formatter):
+    """`TIME COMPONENT LEVEL MESSAGE`, a traceback on the lines below it."""
+
+    def __init__(self, component: str) -> None:
+        super().__init__()
+        self.component = component
+        self.label = component if component == "sdfrd" else f"sdfrd[{component}]"
+
+    def format(self, record: logging.LogRecord) -> str:
+        line = f"{timestamp(record.created)} {self.label} {record.levelname} {record.getMessage()}"
+        extra = self._details(record)
+        return f"{line}\n{extra}" if extra else line
+
+    def _details(self, record: logging.LogRecord) -> str:
+        if record.exc_info and not record.exc_text:
+            record.exc_text = self.formatException(record.exc_info)
+        parts = [p for p in (record.exc_text, record.stack_info) if p]
+        return "\n".join(parts)
+
+
+class JsonFormatter(LineFormatter):
+    """One JSON object a line: time, level, component, logger, message, the record's
+    structured fields (`FIELDS`), and a traceback as `exception`."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        obj: dict[str, object] = {
+            "time": timestamp(record.created),
+            "level": record.levelname.lower(),
+            "component": self.component,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        fields = getattr(record, FIELDS, None)
+        if isinstance(fields, dict):
+            obj.update((k, v) for k, v in fields.items() if k not in obj)
+        extra = self._details(record)
+        if extra:
+            obj["exception"] = extra
+        return json.dumps(obj, ensure_ascii=False, separators=(",", ":"), default=str)
+
+
+def formatter(component: str, fmt: str = "text") -> logging.Formatter:
+    """The formatter of `component`'s records (`sdfrd`, `api`, `discovery`) in `fmt`."""
+    if fmt not in FORMATS:
+        raise ValueError(f"log format must be {' or '.join(FORMATS)}, got {fmt!r}")
+    return JsonFormatter(component) if fmt == "json" else LineFormatter(component)
+
+
 class _ByThread(logging.Formatter):
     """One handler for a process whose layers are threads: each thread's records in the format
     its layer set up (`setup`), the others' in the supervisor's."""
 
     def __init__(self, default: logging.Formatter | None) -> None:
         super().__init__()
-        self.default = default or logging.Formatter(logging.BASIC_FORMAT)
+        self.default = default or LineFormatter("sdfrd")
         self.by_thread: dict[int | None, logging.Formatter] = {}
 
     def format(self, record: logging.LogRecord) -> str:
         return self.by_thread.get(record.thread, self.default).format(record)
+
+
+class _Handler(logging.StreamHandler):  # type: ignore[type-arg]
+    """sdfrd's own handler (to stderr): `setup` may set its format again."""
 
 
 def share_with_threads() -> None:
@@ -64,21 +133,35 @@ def share_with_threads() -> None:
             handler.setFormatter(_ByThread(handler.formatter))
 
 
-def setup(fmt: str, level: str | int = logging.INFO) -> None:
-    """Log to stderr in `fmt`, at `level`, through a RepeatFilter. In a thread of a process
+def setup(component: str, level: str | int = logging.INFO, fmt: str = "text") -> None:
+    """Log `component`'s records to stderr in `fmt` (text or json), at `level`, through a
+    RepeatFilter; called again, set the format and level anew. In a thread of a process
     that shares its log with its threads (`share_with_threads`), only that thread's records
-    take `fmt`: the level and the handler are the process's."""
-    shared = any(isinstance(h.formatter, _ByThread) for h in logging.getLogger().handlers)
+    take the format: the level and the handler are the process's. A process whose root
+    logger has handlers of someone else's (a test runner's) keeps them as they are, with a
+    RepeatFilter added."""
+    form = formatter(component, fmt)
+    root = logging.getLogger()
+    shared = any(isinstance(h.formatter, _ByThread) for h in root.handlers)
     if shared and threading.current_thread() is not threading.main_thread():
         ident = threading.get_ident()
-        for handler in logging.getLogger().handlers:
+        for handler in root.handlers:
             if isinstance(handler.formatter, _ByThread):
-                handler.formatter.by_thread[ident] = logging.Formatter(fmt)
+                handler.formatter.by_thread[ident] = form
             for f in handler.filters:
                 if isinstance(f, RepeatFilter):
                     f.forget_thread(ident)
         return
-    logging.basicConfig(format=fmt, level=level.upper() if isinstance(level, str) else level)
-    for handler in logging.getLogger().handlers:
+    if not root.handlers:
+        root.addHandler(_Handler())
+    ours = [h for h in root.handlers if isinstance(h, _Handler)]
+    if ours:
+        root.setLevel(level.upper() if isinstance(level, str) else level)
+    for handler in ours:
+        if isinstance(handler.formatter, _ByThread):
+            handler.formatter.default = form
+        else:
+            handler.setFormatter(form)
+    for handler in root.handlers:
         if not any(isinstance(f, RepeatFilter) for f in handler.filters):
             handler.addFilter(RepeatFilter())

@@ -522,10 +522,11 @@ class Supervisor:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logs.setup("sdfrd %(levelname)s %(message)s")
+    logs.setup("sdfrd")
     try:
-        cfg = resolve(from_args(argv))
-        logging.getLogger().setLevel(cfg.log_level.upper())
+        cfg = from_args(argv)
+        logs.setup("sdfrd", cfg.log_level, cfg.log_format)
+        cfg = resolve(cfg)
         if cfg.layers == "threads":
             logs.share_with_threads()
         store = Store(cfg.state_dir)  # a state directory we cannot use is reported once, here

@@ -41,6 +41,8 @@ from sdfr.wire import (
 )
 
 _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: "alive"}
+#: The source of a datagram sent from no address (see `_on_own_id`).
+UNSPECIFIED = "0.0.0.0"
 #: A peer's smoothed RTT is stored (and listed) again once it moved from the stored one by more
 #: than this share of it and this many seconds: a true figure without a write per round trip.
 RTT_TELL_SHARE = 0.2
@@ -716,8 +718,12 @@ class Core(CoreState):
                 del self._pings[msg.seq]
                 self._conflict(src, origin, now)  # it answered: a live second daemon
                 return
-        if origin.boot_id == self.boot_id and (seal is not None or src[0] == self._own_host()):
-            # Our own datagram come back (a sealed one was sealed by us, from where it came).
+        if origin.boot_id == self.boot_id and (
+            seal is not None or src[0] in (self._own_host(), UNSPECIFIED)
+        ):
+            # Our own datagram come back (a sealed one was sealed by us, from where it came;
+            # from 0.0.0.0: multicast on lo from a socket that names no source, where no other
+            # robot can be, and a challenge would reach only ourselves).
             self.counters.rejects["own"] += 1
             return
         self.counters.rejects["own-claim"] += 1
