@@ -290,8 +290,8 @@ class AsyncClient:
     async def use_key(self, key_id: str) -> JsonObject:
         return await self.call(calls.use_key(key_id))
 
-    async def remove_key(self, key_id: str) -> None:
-        await self.call(calls.remove_key(key_id))
+    async def remove_key(self, key_id: str, open_fleet: bool = False) -> None:
+        await self.call(calls.remove_key(key_id, open_fleet))
 
     async def set_key_mode(self, mode: str) -> JsonObject:
         return await self.call(calls.set_key_mode(mode))

@@ -315,8 +315,10 @@ def use_key(key_id: str) -> Call[JsonObject]:
     return Call("POST", f"/keys/{quote(key_id, safe='')}/use", _whole)
 
 
-def remove_key(key_id: str) -> Call[None]:
-    return Call("DELETE", f"/keys/{quote(key_id, safe='')}", _nothing)
+def remove_key(key_id: str, open_fleet: bool = False) -> Call[None]:
+    """`open_fleet`: the last key too (in mode accept), leaving an open fleet."""
+    query = "?open_fleet=1" if open_fleet else ""
+    return Call("DELETE", f"/keys/{quote(key_id, safe='')}{query}", _nothing)
 
 
 def set_key_mode(mode: str) -> Call[JsonObject]:

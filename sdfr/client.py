@@ -439,8 +439,8 @@ class Client:
     def use_key(self, key_id: str) -> JsonObject:
         return self.call(calls.use_key(key_id))
 
-    def remove_key(self, key_id: str) -> None:
-        self.call(calls.remove_key(key_id))
+    def remove_key(self, key_id: str, open_fleet: bool = False) -> None:
+        self.call(calls.remove_key(key_id, open_fleet))
 
     def set_key_mode(self, mode: str) -> JsonObject:
         return self.call(calls.set_key_mode(mode))

@@ -365,18 +365,43 @@ def use(stored: StoredKeyring, kid: str) -> StoredKeyring:
     return replace(stored, keyring=Keyring(ring.keys, kid, ring.mode))
 
 
-def remove(stored: StoredKeyring, kid: str) -> StoredKeyring:
-    """Stop accepting key `kid`; never the key in use (use another one first)."""
+def remove(stored: StoredKeyring, kid: str, *, open_fleet: bool = False) -> StoredKeyring:
+    """Stop accepting key `kid`; never the key in use (use another one first), except the
+    last key with `open_fleet`, in mode accept: the way back to an open fleet."""
     ring = stored.keyring
     if kid not in ring.keys:
         raise KeyringError(f"no key {kid!r} in the keyring; `sdfr keys list` shows them", 404, "id")
-    if kid == ring.primary:
+    last = len(ring.keys) == 1
+    if open_fleet and not last:
         raise KeyringError(
-            f"key {kid} is the one this robot signs with: `sdfr keys use` another key first "
-            "(the last key of a keyring cannot be removed)",
+            f"key {kid} is not the last key of the keyring, the fleet stays keyed; "
+            "remove the others first",
+            409,
+            "open_fleet",
+        )
+    if kid == ring.primary and not last:
+        raise KeyringError(
+            f"key {kid} is the one this robot signs with: `sdfr keys use` another key first",
             409,
             "id",
         )
+    if last and not open_fleet:
+        raise KeyringError(
+            f"key {kid} is the last key: removing it opens the fleet on this robot; to do so, "
+            f"`sdfr keys remove {kid} --open-fleet`",
+            409,
+            "id",
+        )
+    if last and ring.mode != "accept":
+        raise KeyringError(
+            f"this robot is in mode {ring.mode}: an open robot sends unsigned and drops signed "
+            "datagrams, so every robot must stop signing first: `sdfr keys mode sign` on every "
+            "robot, then `sdfr keys mode accept` on every robot",
+            409,
+            "mode",
+        )
+    if last:
+        return StoredKeyring()
     keys = {k: v for k, v in ring.keys.items() if k != kid}
     installed = {k: v for k, v in stored.installed.items() if k != kid}
     return StoredKeyring(Keyring(keys, ring.primary, ring.mode), installed)

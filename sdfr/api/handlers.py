@@ -630,9 +630,16 @@ async def keys_use(request: Request) -> Response:
 async def keys_remove(request: Request) -> Response:
     _need_unix_socket(request)
     state = state_of(request)
+    _only_params(request, ["open_fleet"])
     kid = request.match_info["id"]
-    stored = keystore.remove(_load_keyring(state), kid)
+    stored = keystore.remove(_load_keyring(state), kid, open_fleet=_flag(request, "open_fleet"))
     _save_keyring(state, stored, f"key {kid} removed")
+    if not stored.keyring.keyed and state.cfg.key_file is not None:
+        log.warning(
+            "keyring: the fleet is open on this robot, but key_file = %s in the configuration "
+            "seeds the keyring again at the next start: remove key_file",
+            state.cfg.key_file,
+        )
     return Response(status=204)
 
 

@@ -372,14 +372,25 @@ def openapi_document() -> dict[str, object]:
             "delete": {
                 "operationId": "removeKey",
                 "tags": ["keys"],
-                "summary": "Stop accepting this key (never the one in use)",
-                "description": unix_only,
-                "parameters": key_id_param,
+                "summary": "Stop accepting this key (the one in use only with open_fleet)",
+                "description": unix_only + " With open_fleet, the last key too, in mode "
+                "accept: this robot's fleet is open again.",
+                "parameters": [
+                    *key_id_param,
+                    {
+                        "name": "open_fleet",
+                        "in": "query",
+                        "required": False,
+                        "description": "remove the last key (yes/no, default no)",
+                        "schema": {"enum": sorted(FLAG_VALUES)},
+                    },
+                ],
                 "responses": {
                     "204": {"description": "Removed"},
                     "403": _ERROR,
                     "404": _ERROR,
                     "409": _ERROR,
+                    "422": _ERROR,
                 },
             }
         },

@@ -1,5 +1,6 @@
-"""Fixtures of the API tests: a configuration on a temporary state dir, and the store's two
-connections (the API layer's, and the discovery layer's as its own process has it)."""
+"""Fixtures of the API tests: a configuration on a temporary state dir, the store's two
+connections (the API layer's, and the discovery layer's as its own process has it), and the
+API layer as a real process."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 
 from sdfr.config import Config
 from sdfr.store import Store
+from tests.support.api import ApiLayer
 
 
 @pytest.fixture(autouse=True)
@@ -39,3 +41,15 @@ def discovery_store(cfg: Config) -> Iterator[Store]:
     s = Store(cfg.state_dir)
     yield s
     s.close()
+
+
+@pytest.fixture
+def layer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiLayer]:
+    """The API layer as a process (no discovery layer), on a state dir of its own."""
+    # A short path: a unix socket's path is limited to 107 bytes.
+    api = ApiLayer(tmp_path_factory.mktemp("api"))
+    api.start()
+    try:
+        yield api
+    finally:
+        api.stop()

@@ -34,6 +34,9 @@ def test_every_option_says_its_values_and_default(
             continue
         if isinstance(action, argparse._SubParsersAction):
             continue
+        if action.help == argparse.SUPPRESS:  # an option of every action, in `sdfr --help`
+            assert any(action.dest == a.dest for a in ALL[0][1]._actions), action.dest
+            continue
         text = action.help or ""
         name = "/".join(action.option_strings) or action.dest
         assert text, f"{where} {name}: no help"

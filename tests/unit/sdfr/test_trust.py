@@ -263,6 +263,24 @@ def test_an_open_fleet_moves_to_a_key_without_a_flag_day() -> None:
     assert net.nodes["r1"].core.counters.rejects["unsigned"] >= 1
 
 
+def test_a_keyed_fleet_goes_back_to_open_without_a_flag_day() -> None:
+    """The way back (`sdfr keys mode sign`, `mode accept`, then `keys remove --open-fleet`, each
+    on every robot in turn): no robot loses another on the way."""
+    net = SimNet(seed=108)
+    names = fleet(net, 4, n_services=5, keyring=Keyring.of([K1]))
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    flaps = Flaps(net, names)
+    flaps.run(2 * BEACON)
+    back: tuple[Mode, ...] = ("sign", "accept")
+    for mode in back:
+        rotate(net, names, {n: Keyring.of([K1], mode=mode) for n in names}, flaps)
+    rotate(net, names, {n: auth.OPEN for n in names}, flaps)
+    flaps.run(3 * BEACON)
+    assert flaps.total == 0, flaps.count
+    assert net.all_see_all(names)
+    assert all(net.nodes[n].core.counters.rejects["unknown-key"] == 0 for n in names)
+
+
 def test_plain_ssdp_clients_by_interop_setting() -> None:
     search = (
         b'M-SEARCH * HTTP/1.1\r\nHOST: 239.255.255.250:1900\r\nMAN: "ssdp:discover"\r\n'

@@ -143,7 +143,7 @@ async def test_a_robot_left_out_of_a_rotation_is_named_until_it_stops(
             assert (seen["id"], seen["address"], seen["count"]) == (kid, "127.0.0.1", 3)
             assert time.time() - 5 < seen["last_seen"] <= time.time()
             assert kid not in {k["id"] for k in keys["keys"]}
-            shown = cli._show_keys(keys)
+            shown = cli.keys.show_keys(keys)
             assert kid in shown and "127.0.0.1" in shown
             # They stop (say the robot got the key): after the miss window, all clear.
             await asyncio.sleep(WINDOW + 0.2)
@@ -152,4 +152,4 @@ async def test_a_robot_left_out_of_a_rotation_is_named_until_it_stops(
             assert health["status"] == "ok" and health["warnings"] == [], health
             keys = await _get(api, "/keys")
             assert "unknown" not in keys  # (as before any came)
-            assert kid not in cli._show_keys(keys)
+            assert kid not in cli.keys.show_keys(keys)
