@@ -40,7 +40,11 @@ from netlab.capture import CaptureInfo
 from netlab.errors import NetlabError
 
 __all__ = [
+    "PAPER_BEACON_S",
+    "PAPER_CONDITIONS",
+    "PAPER_ROBOTS",
     "PAPER_RX_KB_5MIN",
+    "PAPER_SERVICES_PER_ROBOT",
     "PAPER_TX_KB_5MIN",
     "ArpCounts",
     "PcapError",
@@ -75,6 +79,12 @@ __all__ = [
 PAPER_TX_KB_5MIN = (220, 320)
 PAPER_RX_KB_5MIN = (540, 850)
 FIVE_MINUTES_S = 300.0
+#: The conditions of those figures: the default 10 s beacon, 2 to 6 robots, each with 100
+#: simulated services of which 30, 50 or 70 % were published, runs of 5 minutes.
+PAPER_BEACON_S = 10.0
+PAPER_ROBOTS = (2, 6)
+PAPER_SERVICES_PER_ROBOT = (30, 70)
+PAPER_CONDITIONS = "10 s beacon, 2-6 robots, 30-70 services each, 5 min runs"
 
 _T = TypeVar("_T")
 

@@ -11,6 +11,7 @@ figure from what `netlab.report.write_report` computed and returns it; `save` wr
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from netlab.report import AgreementSample, ConnectivitySample
+    from netlab.report import AgreementSample, ConnectivitySample, RunConditions
 
 __all__ = [
     "Timeline",
@@ -34,28 +35,35 @@ __all__ = [
     "save",
 ]
 
+#: Bins of a time series: the smallest width giving at most this many bins.
 _MAX_BINS = 60
+#: Widths tried when the run's beacon period is not known.
 _STEPS = (0.5, 1.0, 2.0, 5.0, 10.0, 15.0, 30.0, 60.0, 120.0, 300.0, 600.0)
 _DPI = 110
-_TIME_AXIS = "time since start of run (s); dotted: events, ▲: check deadlines"
+_TIME = "time since start of run (s)"
 
-
-#: Steps marked on every time axis, and how.
+#: Steps marked on every time axis (a dotted line), and how.
 _MARKED = {
+    "start": ("start", "#1f77b4"),  # not the run's first start: a robot joining later
     "partition": ("partition", "#d62728"),
     "merge": ("merge", "#2ca02c"),
     "kill": ("kill -9", "#000000"),
     "stop": ("stop", "#7f7f7f"),
     "restart": ("restart", "#9467bd"),
     "collision": ("collision", "#ff7f0e"),
+    "move": ("move", "#17becf"),
+    "quality": ("link quality", "#bcbd22"),
+    "shape": ("shaping", "#bcbd22"),
 }
+#: Steps that last (robots walking): shaded over their span, a dotted line where they begin.
+_SPANS = {"mobility": ("mobility", "#17becf")}
 
 
 @dataclass(frozen=True, slots=True)
 class Timeline:
     """What every time plot of a run shares: its axis (0 to `duration` seconds), its marked
-    events (partitions, merges, kills...) and check deadlines, and the title naming the
-    scenario and the run."""
+    events (partitions, merges, kills...), spans (robots walking) and check deadlines, and the
+    title naming the scenario and the run."""
 
     duration: float
     title: str
@@ -63,17 +71,27 @@ class Timeline:
     deadlines: tuple[tuple[float, str], ...] = ()  # (seconds, check)
     lag: float | None = None  # the agreement plot's lag, when the run had one
     target: float | None = None  # the agreement check's threshold, when the run had one
+    spans: tuple[tuple[float, float, str, str], ...] = ()  # (from, to, label, colour)
 
     @classmethod
     def of(cls, meta: Mapping[str, Any], start: float, end: float, run: str) -> Timeline:
         scenario = meta.get("scenario")
         title = f"{scenario} · run {run}" if scenario else f"run {run}"
         steps = [s for s in meta.get("steps", []) if isinstance(s, Mapping)]
-        events = []
+        events, spans = [], []
+        started = False
         for s in steps:
-            mark = _MARKED.get(str(s.get("kind")))
-            if mark is not None and s.get("start") is not None:
-                events.append((float(s["start"]) - start, s.get("label") or mark[0], mark[1]))
+            kind = str(s.get("kind"))
+            if s.get("start") is None:
+                continue
+            begin = float(s["start"]) - start
+            if kind in _SPANS and s.get("end") is not None:
+                name, colour = _SPANS[kind]
+                spans.append((begin, float(s["end"]) - start, s.get("label") or name, colour))
+            elif kind in _MARKED and (kind != "start" or started):
+                name, colour = _MARKED[kind]
+                events.append((begin, s.get("label") or name, colour))
+            started = started or kind == "start"
         # A check's deadline counts from the end of the last action step before it.
         deadlines = []
         checks = {c.get("step"): c for c in meta.get("checks", []) if isinstance(c, Mapping)}
@@ -94,16 +112,36 @@ class Timeline:
             tuple(deadlines),
             float(lag) if lag is not None else None,
             float(target) if target is not None else None,
+            tuple(spans),
         )
 
+    def _inside(self, t: float) -> bool:
+        # Marks past the run's end (a deadline the run did not wait for) are left out.
+        return 0 <= t <= self.duration
+
+    def caption(self) -> str:
+        """The time axis's label: what the marks drawn on it mean, and only those drawn."""
+        parts = [_TIME]
+        spans = [label for t, _end, label, _c in self.spans if self._inside(t)]
+        if spans or any(self._inside(t) for t, _l, _c in self.events):
+            parts.append("dotted: events")
+        if spans:
+            parts.append(f"shaded: {', '.join(dict.fromkeys(spans))}")
+        if any(self._inside(t) for t, _check in self.deadlines):
+            parts.append("▲: check deadlines")
+        return "; ".join(parts)
+
     def axis(self, ax: Axes, *, labels: bool = True) -> None:
-        """The run's time axis on `ax`, with its events (named at the top when `labels`) and
-        its checks' deadlines (short ticks at the bottom)."""
+        """The run's time axis on `ax`, with its events and spans (named at the top when
+        `labels`) and its checks' deadlines (short ticks at the bottom)."""
         ax.set_xlim(0, max(self.duration, 1e-9))
-        # Marks past the run's end (a deadline the run did not wait for) are left out; none
-        # takes part in the layout, so a mark never squeezes the plot.
-        inside = [e for e in self.events if 0 <= e[0] <= self.duration]
-        for t, label, colour in inside:
+        lines = [(t, label, colour) for t, label, colour in self.events if self._inside(t)]
+        for t, stop, label, colour in self.spans:
+            if self._inside(t):
+                ax.axvspan(t, min(stop, self.duration), color=colour, alpha=0.08, linewidth=0)
+                lines.append((t, label, colour))
+        # No mark takes part in the layout, so a mark never squeezes the plot.
+        for t, label, colour in sorted(lines):
             ax.axvline(t, color=colour, linestyle=":", linewidth=1.2, alpha=0.9)
             if labels:
                 ax.annotate(
@@ -112,7 +150,7 @@ class Timeline:
                     color=colour, annotation_clip=True,
                 ).set_in_layout(False)  # fmt: skip
         for t, _check in self.deadlines:
-            if 0 <= t <= self.duration:
+            if self._inside(t):
                 (tick,) = ax.plot(
                     [t], [0.0], marker="^", markersize=6, color="#d62728", clip_on=False,
                     transform=ax.get_xaxis_transform(), linestyle="none",
@@ -132,12 +170,15 @@ def save(fig: Figure, path: Path, timeline: Timeline) -> str:
     return path.name
 
 
-def bytes_per_robot(traffic: Mapping[str, Any], duration: float) -> Figure:
+def bytes_per_robot(traffic: Mapping[str, Any], conditions: RunConditions) -> Figure:
+    """Bars of each robot's TX and RX kilobytes; below them the run's conditions, and the
+    paper's figure 6 only when `conditions` are the paper's."""
     robots: dict[str, Any] = traffic["robots"]
     names = list(robots)
     n = len(names)
     fig = _figure(max(7.0, 1.0 + 0.45 * n), 4.8)
     ax = fig.add_subplot()
+    duration = conditions.duration_s
     title = f"SDfR traffic per robot over {duration:.1f} s ({n} robot{'s' if n != 1 else ''})"
     ax.set_title(title)
     if not names:
@@ -164,32 +205,69 @@ def bytes_per_robot(traffic: Mapping[str, Any], duration: float) -> Figure:
     ax.set_ylim(0, top * 1.35 or 1.0)  # room above the bars for the legend
     ax.grid(axis="y", alpha=0.3)
     ax.legend(loc="upper left", fontsize=8, ncols=2)
-    if duration > 0:
-        tx = [robots[r].get("per_5_min_kB", {}).get("tx_payload", 0.0) for r in names]
-        rx = [robots[r].get("per_5_min_kB", {}).get("rx_payload", 0.0) for r in names]
-        ptx, prx = analysis.PAPER_TX_KB_5MIN, analysis.PAPER_RX_KB_5MIN
-        fig.supxlabel(
-            f"UDP payload at this rate over 5 min: TX {min(tx):.0f}-{max(tx):.0f} kB, "
-            f"RX {min(rx):.0f}-{max(rx):.0f} kB per robot\n"
-            f"(the paper, 5 min with its default 10 s beacon: TX {ptx[0]}-{ptx[1]} kB, "
-            f"RX {prx[0]}-{prx[1]} kB)",
-            fontsize=8,
-            color="#444444",
+
+    def payloads(key: str) -> list[float]:
+        return [float(robots[r][key]["payload"]) for r in names]
+
+    lines = [
+        f"This run: {conditions.describe()}",
+        f"UDP payload per robot: TX {_span(payloads('tx_kB'), '.1f')} kB, "
+        f"RX {_span(payloads('rx_kB'), '.1f')} kB",
+    ]
+    differences = conditions.paper_differences()
+    if differences:
+        lines.append(
+            f"Not set beside the paper's figure 6 ({analysis.PAPER_CONDITIONS}): "
+            f"this run had {'; '.join(differences)}"
         )
+    else:
+        tx = [float(robots[r]["per_5_min_kB"]["tx_payload"]) for r in names]
+        rx = [float(robots[r]["per_5_min_kB"]["rx_payload"]) for r in names]
+        ptx, prx = analysis.PAPER_TX_KB_5MIN, analysis.PAPER_RX_KB_5MIN
+        lines.append(
+            f"Over 5 min at this rate: TX {_span(tx, '.0f')} kB, RX {_span(rx, '.0f')} kB; "
+            f"the paper's figure 6 under the same conditions: "
+            f"TX {ptx[0]}-{ptx[1]} kB, RX {prx[0]}-{prx[1]} kB per robot"
+        )
+    # Wrapped to the figure's width (about 15 characters an inch at this size).
+    wrap = int(fig.get_figwidth() * 15)
+    text = "\n".join(textwrap.fill(line, wrap, break_on_hyphens=False) for line in lines)
+    fig.supxlabel(text, fontsize=8, color="#444444")
     return fig
 
 
-def _step_for(duration: float) -> float:
-    for step in _STEPS:
-        if duration / step <= _MAX_BINS:
-            return step
-    return _STEPS[-1]
+def _span(values: Sequence[float], fmt: str) -> str:
+    """'low-high' as printed, or one value when both print the same."""
+    low, high = format(min(values), fmt), format(max(values), fmt)
+    return low if low == high else f"{low}-{high}"
+
+
+def bin_width(duration: float, beacon: float | None) -> float:
+    """The width of a time series' bins: a whole number of beacon periods (1, 2, 5, 10, 20...),
+    so that every bin holds as many beacons as the next; the smallest giving at most
+    `_MAX_BINS` bins.  Without a beacon period, the smallest of `_STEPS` that does."""
+    if beacon is None:
+        return next((w for w in _STEPS if duration / w <= _MAX_BINS), _STEPS[-1])
+    scale = 1
+    while True:
+        for k in (1, 2, 5):
+            width = k * scale * beacon
+            if duration / width <= _MAX_BINS:
+                return width
+        scale *= 10
 
 
 def datagrams_per_type(
-    recs: Sequence[Record], start: float, end: float, timeline: Timeline
+    recs: Sequence[Record],
+    start: float,
+    end: float,
+    timeline: Timeline,
+    *,
+    beacon: float | None,
 ) -> Figure:
-    step = _step_for(end - start)
+    """Datagrams per second sent on the air, stacked by message type, in bins of whole beacon
+    periods (`bin_width`)."""
+    step = bin_width(end - start, beacon)
     series = analysis.per_second(recs, by="type", step=step, start=start, end=end)
     fig = _figure(8.0, 4.5)
     ax = fig.add_subplot()
@@ -219,9 +297,8 @@ def datagrams_per_type(
             label=f"{key} ({total})",
         )
         bottom = [b + r for b, r in zip(bottom, rates, strict=True)]
-    ax.set_xlabel(_TIME_AXIS)
-    unit = "per second" if step == 1.0 else f"per second (mean over {step:g} s bins)"
-    ax.set_ylabel(f"datagrams {unit}")
+    ax.set_xlabel(timeline.caption())
+    ax.set_ylabel(f"datagrams/s, bins of {step:g} s{_in_beacons(step, beacon)}")
     timeline.axis(ax)
     ax.set_ylim(0, max(bottom) * 1.15 or 1.0)
     ax.grid(axis="y", alpha=0.3)
@@ -234,6 +311,13 @@ def datagrams_per_type(
         bbox_to_anchor=(1.01, 1.0),
     )
     return fig
+
+
+def _in_beacons(step: float, beacon: float | None) -> str:
+    if beacon is None:
+        return " (beacon unknown)"
+    k = round(step / beacon)
+    return f" ({k} beacon{'s' if k != 1 else ''})"
 
 
 def _type_colors() -> dict[str, str]:
@@ -300,13 +384,23 @@ def connectivity(
     else:
         _empty(bottom, "no per-robot samples")
     timeline.axis(bottom, labels=False)
-    bottom.set_xlabel(_TIME_AXIS)
+    bottom.set_xlabel(timeline.caption())
     bottom.set_ylabel("robot")
     return fig
 
 
+#: Up to this many robots get a line of their own in the agreement plot.
+_MAX_ROBOT_LINES = 10
+#: Per robot: a colour (tab10), a marker and a line style, so that no two lines look alike
+#: even where they overlap or in grey.  No dotted style: dotted lines are the run's events.
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "<", ">")
+_LINESTYLES = ("-", "--", "-.")
+
+
 def agreement(agree: Sequence[AgreementSample], start: float, timeline: Timeline) -> Figure:
-    fig = _figure(8.0, 4.5)
+    """The fleet's agreement over time (black), each robot's (up to `_MAX_ROBOT_LINES`), and
+    the run's check threshold; the y axis runs from the lowest value drawn to 100 %."""
+    fig = _figure(8.8, 4.5)
     ax = fig.add_subplot()
     ts = [s.time - start for s in agree]
     values = [100.0 * s.agreement for s in agree]
@@ -317,15 +411,20 @@ def agreement(agree: Sequence[AgreementSample], start: float, timeline: Timeline
         fontsize=10,
     )
     robots = analysis.natural_order(sorted({r for s in agree for r in s.per_robot}))
-    if 0 < len(robots) <= 10:
-        for robot in robots:
+    drawn = list(values)
+    if len(robots) <= _MAX_ROBOT_LINES:
+        every = max(1, len(ts) // 15)  # markers spaced out, each robot's a little shifted
+        for i, robot in enumerate(robots):
             ys = [100.0 * s.per_robot.get(robot, math.nan) for s in agree]
+            drawn += [y for y in ys if not math.isnan(y)]
             ax.plot(
-                ts, ys, linewidth=0.8, alpha=0.6, marker="." if len(ts) < 60 else "", label=robot
-            )
-    ax.plot(
-        ts, values, color="black", linewidth=2.0, marker="." if len(ts) < 60 else "", label="fleet"
-    )
+                ts, ys, color=f"C{i}", linestyle=_LINESTYLES[i % len(_LINESTYLES)],
+                marker=_MARKERS[i], markevery=(i % every, every), markersize=4, linewidth=1.3,
+                label=robot,
+            )  # fmt: skip
+    else:
+        ax.plot([], [], linestyle="none", label=f"{len(robots)} robots: each one's in report.json")
+    ax.plot(ts, values, color="black", linewidth=2.2, label="fleet", zorder=3)
     if timeline.target is not None:  # only a run with an agreement check has a target
         ax.axhline(
             100 * timeline.target,
@@ -334,13 +433,17 @@ def agreement(agree: Sequence[AgreementSample], start: float, timeline: Timeline
             linewidth=1.0,
             label=f"{100 * timeline.target:.0f} % (the run's check)",
         )
+        drawn.append(100 * timeline.target)
     timeline.axis(ax)
-    ax.set_xlabel(_TIME_AXIS)
+    ax.set_xlabel(timeline.caption())
     ax.set_ylabel("pairs in agreement (%)")
-    low = min([*values, 100 * (timeline.target or 1.0)])
-    ax.set_ylim(max(0.0, math.floor(low / 10) * 10 - 5), 101)
+    # From the lowest value drawn, rounded down to ten (at least 10 points of range), to 100.
+    low = min(90.0, max(0.0, math.floor(min(drawn) / 10) * 10))
+    pad = 0.03 * (100 - low)
+    ax.set_ylim(low - pad, 100 + pad)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right", ncols=min(4, len(robots) + 2))
+    # Beside the axes, never over a line.
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return fig
 
 

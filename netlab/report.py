@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,6 +36,10 @@ __all__ = [
     "REPORT_JSON",
     "AgreementSample",
     "ConnectivitySample",
+    "RunConditions",
+    "beacon_period",
+    "published_services",
+    "run_conditions",
     "write_report",
 ]
 
@@ -113,6 +118,131 @@ class AgreementSample:
         return out
 
 
+@dataclass(frozen=True, slots=True)
+class RunConditions:
+    """What a run's traffic was measured under: robots, the run's length, the beacon period
+    and the services each robot published (lowest, highest); None: not known."""
+
+    robots: int
+    duration_s: float
+    beacon_s: float | None
+    services_per_robot: tuple[int, int] | None
+
+    def describe(self) -> str:
+        """'3 robots, 1 s beacon, 2 services each, 6.8 s'."""
+        beacon = "beacon unknown" if self.beacon_s is None else f"{self.beacon_s:g} s beacon"
+        services = "services unknown" if self.services_per_robot is None else self._services()
+        each = "" if self.services_per_robot is None else " each"
+        return (
+            f"{_count(self.robots, 'robot')}, {beacon}, {services}{each}, "
+            f"{_seconds(self.duration_s)} s"
+        )
+
+    def paper_differences(self) -> list[str]:
+        """How this run differs from the runs of the paper's figure 6 (`analysis.PAPER_*`);
+        empty when it does not, and only then may its figures be set beside the paper's."""
+        out = []
+        if self.beacon_s is None:
+            out.append("beacon unknown")
+        elif not math.isclose(self.beacon_s, analysis.PAPER_BEACON_S):
+            out.append(f"a {self.beacon_s:g} s beacon")
+        low, high = analysis.PAPER_ROBOTS
+        if not low <= self.robots <= high:
+            out.append(_count(self.robots, "robot"))
+        least, most = analysis.PAPER_SERVICES_PER_ROBOT
+        if self.services_per_robot is None:
+            out.append("services per robot unknown")
+        elif not (least <= self.services_per_robot[0] and self.services_per_robot[1] <= most):
+            out.append(f"{self._services()} per robot")
+        # 5 minutes, give or take a beacon (a run's window starts with its captures).
+        if self.duration_s < analysis.FIVE_MINUTES_S - analysis.PAPER_BEACON_S:
+            out.append(f"a {_seconds(self.duration_s)} s run")
+        return out
+
+    def _services(self) -> str:
+        assert self.services_per_robot is not None
+        low, high = self.services_per_robot
+        return _count(low, "service") if low == high else f"{low}-{high} services"
+
+    def to_json(self) -> dict[str, object]:
+        services = self.services_per_robot
+        return {
+            "robots": self.robots,
+            "duration_s": self.duration_s,
+            "beacon_s": self.beacon_s,
+            "services_per_robot": None if services is None else list(services),
+        }
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _seconds(value: float) -> str:
+    """300, 60, 6.8: whole seconds from 100 s on, else one decimal unless it is 0."""
+    text = f"{value:.0f}" if value >= 100 else f"{value:.1f}"
+    return text.removesuffix(".0")
+
+
+def run_conditions(
+    meta: Mapping[str, Any], recs: Sequence[Record], *, robots: int, duration: float
+) -> RunConditions:
+    """The conditions of a run: its beacon (`beacon_period`) and the services each of its
+    `robots` published, as `meta` states them (``services_per_robot``: a number, or
+    [lowest, highest]) or else as the latest complete Update of each robot counted them."""
+    stated = meta.get("services_per_robot")
+    services: tuple[int, int] | None
+    if stated is not None:
+        low, high = (stated, stated) if isinstance(stated, int | float) else stated
+        services = (int(low), int(high))
+    else:
+        counts = published_services(recs)
+        enough = counts and len(counts) >= robots
+        services = (min(counts.values()), max(counts.values())) if enough else None
+    return RunConditions(robots, duration, beacon_period(meta, recs), services)
+
+
+def published_services(recs: Iterable[Record]) -> dict[str, int]:
+    """Robot -> how many services its latest complete Update (every part seen) listed."""
+    parts: dict[tuple[str, int | None, int | None], dict[int, int]] = {}
+    size: dict[tuple[str, int | None, int | None], int] = {}
+    when: dict[tuple[str, int | None, int | None], float] = {}
+    for r in recs:
+        if r.msg_type != "Update" or r.robot is None or r.services is None:
+            continue
+        key = (r.robot, r.boot, r.version)
+        parts.setdefault(key, {})[r.part or 0] = r.services
+        size[key] = r.parts or 1
+        when[key] = max(when.get(key, r.time), r.time)
+    latest: dict[str, tuple[float, int]] = {}
+    for key, seen in parts.items():
+        if len(seen) >= size[key] and when[key] >= latest.get(key[0], (-math.inf, 0))[0]:
+            latest[key[0]] = (when[key], sum(seen.values()))
+    return {robot: count for robot, (_t, count) in sorted(latest.items())}
+
+
+def beacon_period(meta: Mapping[str, Any], recs: Iterable[Record]) -> float | None:
+    """The run's beacon period in seconds: ``beacon_interval_s`` in `meta`, else the median gap
+    between a robot's Alive datagrams (two significant digits); None: neither is known."""
+    stated = meta.get("beacon_interval_s")
+    if stated is not None:
+        if isinstance(stated, bool) or not isinstance(stated, int | float) or stated <= 0:
+            raise ValueError(
+                f"beacon_interval_s must be a positive number of seconds, not {stated!r}"
+            )
+        return float(stated)
+    last: dict[str, float] = {}
+    gaps = []
+    for r in analysis.transmissions(recs):
+        if r.msg_type == "Alive" and r.robot is not None:
+            if r.robot in last:
+                gaps.append(r.time - last[r.robot])
+            last[r.robot] = r.time
+    if not gaps:
+        return None
+    return float(f"{statistics.median(gaps):.2g}")
+
+
 def write_report(
     run_dir: Path,
     *,
@@ -150,6 +280,16 @@ def write_report(
         "arp": analysis.arp_counts(recs).to_json(),
         "plots": {},
     }
+    robots = int(meta.get("robots") or len(report["traffic"]["robots"]))
+    conditions = run_conditions(meta, recs, robots=robots, duration=duration)
+    differences = conditions.paper_differences()
+    report["conditions"] = {
+        **conditions.to_json(),
+        "paper_comparable": not differences,
+        "paper_differences": differences,
+    }
+    if differences:  # the paper's figures go beside a run's only under the paper's conditions
+        del report["traffic"]["paper_5_min_kB"]
     if conn:
         report["connectivity"] = _connectivity_summary(conn)
     if agree:
@@ -162,10 +302,12 @@ def write_report(
         meta, start, end, f"{run}/{run_dir.name}" if run != run_dir.name else run
     )
     plots["bytes_per_robot"] = draw.save(
-        draw.bytes_per_robot(report["traffic"], duration), run_dir / "bytes_per_robot.png", timeline
+        draw.bytes_per_robot(report["traffic"], conditions),
+        run_dir / "bytes_per_robot.png",
+        timeline,
     )
     plots["datagrams_per_type"] = draw.save(
-        draw.datagrams_per_type(recs, start, end, timeline),
+        draw.datagrams_per_type(recs, start, end, timeline, beacon=conditions.beacon_s),
         run_dir / "datagrams_per_type.png",
         timeline,
     )
