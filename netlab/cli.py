@@ -79,6 +79,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
 def _metres(text: str) -> float:
     try:
         value = float(text)
@@ -232,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
         "-f", "--follow", action="store_true", help="keep printing what is added (Ctrl-C ends)"
     )
     logs.add_argument(
-        "-n", "--lines", type=int, metavar="N", help="only the last N lines (default: all)"
+        "-n", "--lines", type=_count, metavar="N", help="only the last N lines (default: all)"
     )
 
     pa = sub.add_parser(

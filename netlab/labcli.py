@@ -307,8 +307,14 @@ def exec_all(record: Manifest, cmd: list[str], out: TextIO) -> int:
 def log_of(ref: str, robot: str) -> Path:
     """The daemon log of `robot` in lab `ref` (a lab up) or in folder `ref` (kept by down)."""
     folder = Path(ref)
-    if not (os.sep in ref or ref.startswith(".")) or not folder.is_dir():
-        record = lab_record(naming.check_lab_name(ref))
+    if os.sep in ref or ref.startswith("."):
+        if not folder.is_dir():
+            raise NetlabError(f"no folder {ref} (give a lab's name, or the folder down kept)")
+    else:
+        try:
+            record = lab_record(naming.check_lab_name(ref))
+        except LabNotFoundError as exc:
+            raise LabNotFoundError(f"{exc}; after `netlab down`, give the folder it kept") from None
         robot_record(record, robot)
         folder = Path(record.workdir)
     log = folder / robot / "sdfrd.log"
