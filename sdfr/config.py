@@ -440,9 +440,10 @@ def load_toml(path: Path) -> dict[str, object]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    import argparse  # (imported here: see _plain_flags)
+    # (imported here: see _plain_flags)
+    from sdfr.usage import UsageParser
 
-    p = argparse.ArgumentParser(
+    p = UsageParser(
         prog="sdfrd",
         description="SDfR daemon: discovers the reachable robots of a fleet and their services, "
         "and serves them to local programs over a REST API.",

@@ -65,6 +65,18 @@ def test_bad_values_are_usage_errors(
     assert error in capsys.readouterr().err
 
 
+def test_a_mistyped_sdfrd_flag_is_one_line_with_the_closest_spelling(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as done:
+        config.from_args(["--iface-name", "lo"])
+    assert done.value.code == 2
+    assert capsys.readouterr().err == (
+        "sdfrd: error: unrecognized arguments: --iface-name lo (--iface-name: did you mean "
+        "--iface?); see sdfrd --help\n"
+    )
+
+
 @pytest.mark.parametrize("module", ["sdfr.cli", "sdfr.daemon.supervisor", "netlab.cli"])
 def test_version_on_every_command(module: str) -> None:
     res = subprocess.run(
