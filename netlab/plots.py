@@ -352,7 +352,9 @@ def connectivity(
         top.stairs(pairs, edges, baseline=None, linestyle="--", label="pairs listing each other")
     timeline.axis(top)
     top.set_ylabel("robot pairs")
-    top.set_ylim(bottom=0, top=max(1, max(s.linked_pairs for s in conn)) * 1.15)
+    # Both lines fit: more pairs can list each other than the medium links (stale entries).
+    pairs_max = max(max(s.linked_pairs, s.reachable_pairs or 0) for s in conn)
+    top.set_ylim(bottom=0, top=max(1, pairs_max) * 1.15)
     top.yaxis.set_major_locator(MaxNLocator(integer=True))
     top.grid(alpha=0.3)
     top.legend(fontsize=8, loc="best")

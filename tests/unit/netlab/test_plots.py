@@ -278,3 +278,19 @@ def test_the_report_keeps_the_paper_out_of_a_run_unlike_it(tmp_path: Path) -> No
     assert conditions["beacon_s"] == 1.0 and conditions["robots"] == 3
     assert conditions["paper_comparable"] is False and conditions["paper_differences"]
     assert json.loads((tmp_path / "report.json").read_text())["conditions"] == conditions
+
+
+def test_the_connectivity_plot_shows_stale_pairs_above_the_medium_and_names_its_marks() -> None:
+    # The medium links 2 pairs, then 1 after a kill, but 3 still list each other (stale).
+    conn = [
+        ConnectivitySample(T0 + k, 1 if k >= 3 else 2, {"r1": 2}, reachable_pairs=3)
+        for k in range(6)
+    ]
+    fig = plots.connectivity(conn, T0, T0 + 10, timeline())
+    top, bottom = fig.axes[:2]
+    assert top.get_ylim()[1] >= 3
+    assert bottom.get_xlabel() == "time since start of run (s)"
+    killed = timeline([step(1, "start", 0.1, 0.5), step(2, "kill", 3.0, 3.1)])
+    fig = plots.connectivity(conn, T0, T0 + 10, killed)
+    assert fig.axes[1].get_xlabel() == "time since start of run (s); dotted: events"
+    assert [t.get_text() for t in fig.axes[0].texts] == ["kill -9"]
