@@ -30,6 +30,7 @@ from netlab import analysis
 from netlab import plots as draw
 from netlab.analysis import Record
 from netlab.capture import CaptureInfo
+from sdfr.protocol.config import CoreConfig
 
 __all__ = [
     "AGREEMENT_TARGET",
@@ -47,6 +48,8 @@ REPORT_JSON = "report.json"
 SCHEMA = "netlab-report/1"
 #: Share of the time neighbour lists must agree with the truth (issue: mobility check).
 AGREEMENT_TARGET = 0.95
+#: sdfrd draws each gap between its beacons from (1 - this) to 1 times its period.
+_BEACON_JITTER = CoreConfig(fleet=1, robot_id="-").jitter
 
 
 @dataclass(frozen=True, slots=True)
@@ -222,8 +225,9 @@ def published_services(recs: Iterable[Record]) -> dict[str, int]:
 
 
 def beacon_period(meta: Mapping[str, Any], recs: Iterable[Record]) -> float | None:
-    """The run's beacon period in seconds: ``beacon_interval_s`` in `meta`, else the median gap
-    between a robot's Alive datagrams (two significant digits); None: neither is known."""
+    """The run's beacon period in seconds: ``beacon_interval_s`` in `meta`, else the one that
+    the gaps between each robot's Alive datagrams were drawn from (two significant digits);
+    None: neither is known."""
     stated = meta.get("beacon_interval_s")
     if stated is not None:
         if isinstance(stated, bool) or not isinstance(stated, int | float) or stated <= 0:
@@ -240,7 +244,8 @@ def beacon_period(meta: Mapping[str, Any], recs: Iterable[Record]) -> float | No
             last[r.robot] = r.time
     if not gaps:
         return None
-    return float(f"{statistics.median(gaps):.2g}")
+    # sdfrd draws each gap from (1 - jitter) to 1 times its period: the median is the middle.
+    return float(f"{statistics.median(gaps) / (1 - _BEACON_JITTER / 2):.2g}")
 
 
 def write_report(

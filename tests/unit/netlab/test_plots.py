@@ -7,6 +7,7 @@ Synthetic samples and records; the assertions read the matplotlib figures' axes 
 from __future__ import annotations
 
 import json
+import random
 from pathlib import Path
 from typing import Any
 
@@ -166,8 +167,14 @@ def test_the_beacon_is_read_from_the_run_or_else_from_its_alive_datagrams() -> N
     from netlab.report import beacon_period
 
     assert beacon_period({"beacon_interval_s": 2.0}, []) == 2.0
-    assert beacon_period({}, beacons(1.0, 20.0)) == pytest.approx(1.0)
-    assert beacon_period({}, beacons(0.5, 5.0)) == pytest.approx(0.5)
+    # sdfrd's gaps are 0.9 to 1 times its period (`CoreConfig.jitter`).
+    rng = random.Random(7)
+    for period in (1.0, 0.5, 10.0):
+        recs, t = [], 0.0
+        while t < 60 * period:
+            recs.append(alive(T0 + t, "r1"))
+            t += period * rng.uniform(0.9, 1.0)
+        assert beacon_period({}, recs) == pytest.approx(period, rel=0.02)
     assert beacon_period({}, [alive(T0, "r1")]) is None
     with pytest.raises(ValueError, match="beacon_interval_s"):
         beacon_period({"beacon_interval_s": 0}, [])
