@@ -29,6 +29,7 @@ if TYPE_CHECKING:
 __all__ = [
     "Timeline",
     "agreement",
+    "bin_width",
     "bytes_per_robot",
     "connectivity",
     "datagrams_per_type",
