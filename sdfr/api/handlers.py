@@ -581,7 +581,8 @@ def _save_keyring(state: ApiState, stored: StoredKeyring, what: str) -> None:
         raise _keyring_failed(exc) from None
     notify_discovery(state.cfg.state_dir)
     ring = stored.keyring
-    log.info("keyring: %s; mode %s, signing with %s", what, ring.mode, ring.primary)
+    signs = ring.primary if ring.signs else "no key"
+    log.info("keyring: %s; mode %s, signing with %s", what, ring.mode, signs)
 
 
 async def keys_list(request: Request) -> Response:

@@ -4,7 +4,13 @@ search (everything, --wait, --parsable, exit statuses), events --once, --state-d
 
 from __future__ import annotations
 
+import base64
 import json
+import logging
+import shutil
+import signal
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -13,14 +19,17 @@ from pathlib import Path
 import pytest
 
 from sdfr import auth, keystore
+from sdfr.api import create_app
 from sdfr.cli import main as sdfr
 from sdfr.cli.args import KIND_NAMES
 from sdfr.cli.show import ChangeLines, escape
 from sdfr.client import Change
+from sdfr.config import Config
 from sdfr.events import Tracker
 from sdfr.model import PeerRecord, Service
 from sdfr.store import Store
-from tests.support.api import ApiLayer
+from tests.support.api import ApiLayer, aio
+from tests.unit.sdfr.test_api_doors import over_unix_socket
 from tests.unit.sdfr.test_client_cli import save_fleet
 
 MAP = Service("8294a3360201", "map", "map/grid", None, {})
@@ -77,6 +86,40 @@ def test_events_once_prints_the_changes_kept_with_names_and_exits(
     assert change["event"] == "robot.services" and change["removed"] == [MAP.id]
     assert sdfr(["--api", layer.api, "events", "--once", "--since", str(change["id"])]) == 0
     assert capsys.readouterr().out == ""
+
+
+def sdfr_process(*argv: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "sdfr.cli", *argv], text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+
+
+def test_neighbors_watch_prints_the_table_then_each_change_with_names(layer: ApiLayer) -> None:
+    proc = sdfr_process("neighbors", "--watch", "--socket", str(layer.socket))
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline() == "no reachable robots\n"
+        map_removed(layer.state_dir)
+        assert proc.stdout.readline().endswith("+ atlas appeared at 10.1.0.5 (map, lidar)\n")
+        assert proc.stdout.readline().endswith("~ atlas services: -map (8294a3360201)\n")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 130
+
+
+def test_publish_hold_keeps_the_lease_until_interrupted_then_unpublishes(
+    layer: ApiLayer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    proc = sdfr_process("publish", "cam", "camera/rgb", "--ttl", "1", "--hold",
+                        "--socket", str(layer.socket))  # fmt: skip
+    assert proc.stdout is not None
+    sid = proc.stdout.readline().strip()
+    time.sleep(2.5)  # past two ttls: renewed meanwhile
+    assert sdfr(["--json", "services", "--socket", str(layer.socket)]) == 0
+    assert [s["id"] for s in json.loads(capsys.readouterr().out)["services"]] == [sid]
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=30) == 0
+    assert sdfr(["--json", "services", "--socket", str(layer.socket)]) == 0
+    assert json.loads(capsys.readouterr().out)["services"] == []
 
 
 def test_the_event_kinds_are_listed_once_each() -> None:
@@ -265,3 +308,44 @@ def test_keys_open_fleet_is_refused_while_other_keys_remain(
     err = capsys.readouterr().err
     assert err.startswith(f"sdfr: open_fleet: key {id2} is not the last key")
     assert len(keystore.load_keyring(layer.state_dir).keys) == 2
+
+
+# -- the API with curl (docs/sdfr-cli.md's example) ---------------------------------------------
+
+
+@pytest.mark.skipif(shutil.which("curl") is None, reason="needs curl")
+def test_curl_posts_json_over_the_unix_socket_and_without_the_header_gets_415(
+    layer: ApiLayer,
+) -> None:
+    body = '{"name": "front camera", "type": "camera/rgb", "attributes": {"fps": 30}}'
+    curl = ["curl", "-s", "-w", "\n%{http_code}", "--unix-socket", str(layer.socket)]
+    url = "http://localhost/services"
+    json_type = ["-H", "Content-Type: application/json"]
+    done = subprocess.run([*curl, *json_type, "-d", body, url], capture_output=True, text=True)
+    answer, status = done.stdout.rsplit("\n", 1)
+    assert status == "201" and json.loads(answer)["service"]["attributes"] == {"fps": 30}
+    done = subprocess.run([*curl, "-d", body, url], capture_output=True, text=True)
+    answer, status = done.stdout.rsplit("\n", 1)
+    assert status == "415" and json.loads(answer)["field"] == "Content-Type"
+
+
+@aio
+async def test_an_open_fleet_with_key_file_configured_is_warned_of_in_the_log(
+    cfg: Config, store: Store, tmp_path_factory: pytest.TempPathFactory,
+    caplog: pytest.LogCaptureFixture,
+) -> None:  # fmt: skip
+    key = bytes(range(32))
+    kid = auth.key_id(key)
+    sock = tmp_path_factory.mktemp("s") / "api.sock"
+    app = create_app(replace(cfg, key_file=Path("/etc/sdfr/fleet.key")), store)
+    async with over_unix_socket(app, sock) as s:
+        r = await s.post("http://localhost/keys", json={"key": base64.b64encode(key).decode()})
+        assert r.status == 201
+        for query in ("?open_fleet=maybe", "?open=1"):
+            r = await s.delete(f"http://localhost/keys/{kid}{query}")
+            assert r.status == 422, query
+        with caplog.at_level(logging.WARNING):
+            r = await s.delete(f"http://localhost/keys/{kid}?open_fleet=1")
+        assert r.status == 204
+    assert keystore.load_keyring(cfg.state_dir) == auth.OPEN
+    assert "key_file = /etc/sdfr/fleet.key in the configuration seeds" in caplog.text
