@@ -126,9 +126,9 @@ class DiscoveryLayer:
         self.tracker = events.Tracker(
             cfg.indicator_thresholds, [replace(r, reachable=False) for r in saved]
         )
-        # On lo the kernel sends multicast from 0.0.0.0 (127.0.0.1 is host-scoped, and a
-        # multicast source must reach the link): from the address we announce, our own echo
-        # is recognised, and robots on one machine can answer each other.
+        # On lo the kernel sends multicast from 0.0.0.0 or another interface's address
+        # (127.0.0.1 is host-scoped): from the address our LOCATION names, the core knows the
+        # echo it hears there for its own, not another sender's claim of our robot id.
         loopback = netif.is_loopback(self.iface)
         self.sock = open_multicast_socket(cfg, self.iface, self.address if loopback else "")
         self.control = self._open_control(cfg.state_dir / CONTROL_NAME)
