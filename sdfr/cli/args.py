@@ -171,9 +171,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=version_text("sdfr"))
     sub = p.add_subparsers(dest="command", required=True, metavar="ACTION")
 
-    def command(name: str, text: str, epilog: str | None = None) -> argparse.ArgumentParser:
+    def command(
+        name: str, text: str, epilog: str | None = None, more: str = ""
+    ) -> argparse.ArgumentParser:
+        """An action: `text` in `sdfr --help`, with `more` in its own help."""
         note = COMMON_NOTE if epilog is None else f"{epilog}. {COMMON_NOTE}"
-        return sub.add_parser(name, help=text, description=text, epilog=note, parents=[common])
+        about = text + more
+        return sub.add_parser(name, help=text, description=about, epilog=note, parents=[common])
 
     c = command("neighbors", "robots reachable now and their services")
     c.add_argument("--all", action="store_true", help="also robots out of reach (history)")
@@ -207,11 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--ttl", type=_seconds, metavar="SECONDS", help="new ttl (default: the same)")
     c = command(
         "search",
-        "services of reachable robots (all of them, or those matching --type and --attr)",
+        "services of reachable robots",
         "exit status: 0 something matched; 1 nothing did (after --wait), or sdfrd said no; "
         "2 a usage error. --parsable: one line per service, '=;ROBOT;ADDRESS;ID;NAME;TYPE;URL' "
         "then one KEY=VALUE field per attribute; ';', '\\' and control characters as \\DDD "
         "(decimal), as avahi-browse -p",
+        more=" (all of them, or those matching --type and --attr)",
     )
     c.add_argument("--type", help="the service type (default: any)")
     c.add_argument(
@@ -235,8 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c = command(
         "events",
-        "changes as they happen (robots appearing, leaving, unreachable, their services, "
-        "indicator thresholds; this robot's registrations), until Ctrl-C",
+        "changes as they happen, until Ctrl-C",
+        more=" (robots appearing, leaving, unreachable, their services, indicator "
+        "thresholds; this robot's registrations)",
     )
     c.add_argument(
         "--since",
@@ -255,10 +261,10 @@ def build_parser() -> argparse.ArgumentParser:
     command("history", "every robot ever seen, reachable or not")
     command("self", "this robot")
     command("services", "this robot's services")
-    command("health", "whether both layers are up (exit status 1 when degraded)")
+    command("health", "whether both layers are up (exit status 1: degraded)")
     c = sub.add_parser(
         "wifi-config",
-        help="the fleet's ad-hoc WiFi set-up sdfrd applies (from its config, not from sdfrd)",
+        help="the fleet's ad-hoc WiFi set-up, from sdfrd's config",
         description="The fleet's ad-hoc WiFi set-up sdfrd applies at start (from sdfrd's "
         "config; does not talk to sdfrd): prints it, and applies it unless --dry-run (root).",
     )
@@ -278,8 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--show-key", action="store_true", help="print the WiFi key instead of ****")
     c = command(
         "example",
-        "print a file installed with sdfr (does not talk to sdfrd): robot.toml, a robot's "
-        "configuration; sdfrd.service, the systemd unit (docs/deploy.md)",
+        "print robot.toml or sdfrd.service",
+        more=" (installed with sdfr): a robot's configuration, the systemd unit (docs/deploy.md)",
     )
     c.add_argument("name", choices=EXAMPLES, help=f"one of {', '.join(EXAMPLES)}")
     _keys_parser(command, common)
@@ -287,12 +293,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _keys_parser(
-    command: Callable[[str, str], argparse.ArgumentParser], common: argparse.ArgumentParser
+    command: Callable[..., argparse.ArgumentParser], common: argparse.ArgumentParser
 ) -> None:
     k = command(
         "keys",
-        "the fleet keyring: keys that sign and check every datagram (on sdfrd's unix socket "
-        "STATE_DIR/api.sock, or --socket; `generate` only writes a file)",
+        "the fleet keyring (on sdfrd's unix socket)",
+        more=": keys that sign and check every datagram (STATE_DIR/api.sock, or --socket; "
+        "`generate` only writes a file)",
     )
     ks = k.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
 
