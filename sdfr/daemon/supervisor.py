@@ -545,7 +545,7 @@ def main(argv: list[str] | None = None) -> int:
         log.info(
             "fleet %d: %s",
             cfg.fleet,
-            f"keyed ({keyring.mode}, signing with {keyring.primary})"
+            f"keyed ({keyring.mode}, signing with {keyring.primary if keyring.signs else 'none'})"
             if keyring.keyed
             else "open (no key: datagrams are not authenticated)",
         )
