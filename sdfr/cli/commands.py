@@ -84,7 +84,13 @@ def _search(client: Client, args: argparse.Namespace) -> Result:
     path = search_path(args.type, dict(args.attr)) if filtered else neighbors_path(False)
     deadline = time.monotonic() + (args.wait or 0)
     while True:
-        answer = client.request("GET", path)
+        try:
+            answer = client.request("GET", path)
+        except ApiError as exc:  # with --wait, sdfrd may be starting still: ask again
+            if exc.status != 0 or deadline <= time.monotonic():
+                raise
+            time.sleep(WAIT_POLL)
+            continue
         left = deadline - time.monotonic()
         if _matched(answer) or left <= 0:
             break

@@ -184,6 +184,25 @@ def test_search_wait_returns_when_a_match_appears_or_fails_after_the_time(
     assert capsys.readouterr().out.splitlines()[1].split()[:3] == ["atlas", "10.1.0.5", "l1"]
 
 
+def test_search_wait_also_waits_for_sdfrd_to_answer(
+    tmp_path_factory: pytest.TempPathFactory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    api = ApiLayer(tmp_path_factory.mktemp("late"))
+    save_fleet(api.state_dir)
+    started = threading.Timer(0.5, api.start)
+    started.start()
+    try:
+        argv = ["search", "--type", "lidar", "--wait", "30", "--socket", str(api.socket)]
+        assert sdfr(argv) == 0
+        assert "atlas" in capsys.readouterr().out
+    finally:
+        started.join()
+        api.stop()
+    # Without --wait, a daemon that does not answer is an error at once.
+    assert sdfr(["search", "--socket", str(api.socket)]) == 1
+    assert "cannot reach sdfrd" in capsys.readouterr().err
+
+
 def test_search_parsable_one_line_per_service_escaped(
     layer: ApiLayer, capsys: pytest.CaptureFixture[str]
 ) -> None:
