@@ -87,7 +87,9 @@ def fleet(
         ]
         start_all(caps_)
         try:
+            t0 = time.monotonic()
             lab.start_all(beacon_interval=BEACON, timeout=180.0)
+            print(f"\n{len(NAMES)} daemons healthy {time.monotonic() - t0:.1f} s after their start")
             for robot in NAMES:
                 client = lab.client(robot)
                 client.publish("camera", "sensor.camera", attributes={"fps": 30})
