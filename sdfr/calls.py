@@ -109,7 +109,7 @@ class Health(TypedDict):
 @dataclass(frozen=True, slots=True)
 class Change:
     """One event of GET /events: `event` is its kind (robot.appeared, service.expired, ...;
-    see the README), `robot_id` the robot it is about (None: this robot), `data` the whole
+    see docs/api.md), `robot_id` the robot it is about (None: this robot), `data` the whole
     JSON object (`data["services"]`, `data["address"]`, ...)."""
 
     id: int

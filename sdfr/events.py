@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 from sdfr.model import PeerRecord, Service
 
-#: Every kind of event, and what it means (the OpenAPI document and the README list these).
+#: Every kind of event, and what it means (the OpenAPI document and docs/api.md list these).
 KINDS: dict[str, str] = {
     "robot.appeared": "a robot became reachable (`new`: never seen before)",
     "robot.left": "a reachable robot said goodbye (Byebye)",
