@@ -4,7 +4,9 @@ The README marks the shell blocks a newcomer types first with ``<!-- first-hour 
 set-up, putting the commands on PATH, the netlab tour). This test clones the repository at HEAD
 into a temporary folder and runs those blocks there, in order, in one clean shell (``env -i``
 with a plain PATH and HOME; no virtualenv), and every command must exit 0. ``make test`` is not
-among them: this test is part of it.
+among them: this test is part of it. One change: the README's lab name ``lab1`` becomes one of
+this run's own (``fh`` and a number), so that a lab someone else named ``lab1`` on this host
+cannot make the test fail, nor the test take that lab down.
 
 It takes a few minutes (``make netlab`` creates the clone's own ``.venv``, then runs its three
 scenarios) and needs root, like the rest of tests/ns.
@@ -24,6 +26,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 MARK = "<!-- first-hour -->"
 CLEAN_PATH = "/usr/sbin:/usr/bin:/sbin:/bin"
+README_LAB = "lab1"
+
+
+def own_lab(commands: list[str], name: str) -> list[str]:
+    """`commands` with the README's lab name replaced by `name` (a word, not a part of one)."""
+    return [re.sub(rf"\b{README_LAB}\b", name, c) for c in commands]
 
 
 def first_hour_commands(readme: str) -> list[str]:
@@ -113,6 +121,12 @@ def test_the_readme_starts_with_make_netlab_and_marks_the_tour() -> None:
     assert "source .venv/bin/activate" in [c.split("#")[0].strip() for c in commands]
     assert any(c.startswith("netlab ") for c in commands)
     assert not any(re.match(r"make\s+test\b", c) for c in commands), "make test runs this test"
+    ours = own_lab(commands, "fh42")
+    tour = [c for c in commands if README_LAB in c]
+    assert tour and not any(README_LAB in c for c in ours)
+    assert own_lab(["netlab down lab1 --cleanup  # lab1x"], "fh42") == [
+        "netlab down fh42 --cleanup  # lab1x"
+    ]
 
 
 @pytest.mark.root
@@ -120,6 +134,7 @@ def test_the_readme_first_hour_in_a_fresh_clone(tmp_path: Path) -> None:
     clone = tmp_path / "sdfr"
     subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
     commands = first_hour_commands((clone / "README.md").read_text())
+    commands = own_lab(commands, f"fh{os.getpid() % 1000000}")
     env = {"PATH": CLEAN_PATH, "HOME": os.environ.get("HOME", "/root"), "LANG": "C.UTF-8"}
     argv = ["env", "-i", *(f"{k}={v}" for k, v in env.items())]
     argv += ["bash", "--noprofile", "--norc", "-c", shell_script(commands)]
