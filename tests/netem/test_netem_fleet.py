@@ -30,6 +30,8 @@ from netlab import Lab, naming
 from netlab.analysis import count_updates, read_run
 from netlab.capture import Capture, start_all, stop_all
 from netlab.doctor import capabilities
+from sdfr.errors import ApiError
+from sdfr.model import AttrValue
 
 pytestmark = [pytest.mark.root, pytest.mark.netem]
 
@@ -67,6 +69,21 @@ def all_list_all(lab: Lab) -> bool:
     return True
 
 
+def publish(lab: Lab, robot: str, name: str, type_: str, attrs: dict[str, AttrValue]) -> None:
+    """Publish on `robot`; if its API cannot be reached, fail saying what its daemon was doing
+    (whether it runs, whether its socket is there, the end of its log)."""
+    try:
+        lab.client(robot).publish(name, type_, attributes=attrs)
+    except ApiError as exc:
+        sock = lab.robot(robot).api_socket
+        pytest.fail(
+            f"publish on {robot}: {exc}\nsdfrd on {robot} "
+            f"{'runs' if lab.alive(robot) else 'is not running'}, {sock} "
+            f"{'exists' if sock.exists() else 'does not exist'}; its log ends with:\n"
+            f"{lab.log_tail(robot, 40)}"
+        )
+
+
 @pytest.fixture(scope="module")
 def fleet(
     tmp_path_factory: pytest.TempPathFactory,
@@ -91,9 +108,8 @@ def fleet(
             lab.start_all(beacon_interval=BEACON, timeout=180.0)
             print(f"\n{len(NAMES)} daemons healthy {time.monotonic() - t0:.1f} s after their start")
             for robot in NAMES:
-                client = lab.client(robot)
-                client.publish("camera", "sensor.camera", attributes={"fps": 30})
-                client.publish("lidar", "sensor.lidar", attributes={"hz": 10})
+                publish(lab, robot, "camera", "sensor.camera", {"fps": 30})
+                publish(lab, robot, "lidar", "sensor.lidar", {"hz": 10})
             yield lab, folder, caps_
         finally:
             stop_all(caps_)
