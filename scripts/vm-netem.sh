@@ -107,9 +107,16 @@ trap 'echo "vm-netem: terminated, stopping the VM" >&2; exit 143' TERM
     echo 'if ! modprobe sch_netem; then touch "$res/no-netem"; exit 0; fi'
     echo 'export PYTHONDONTWRITEBYTECODE=1 # the repository is read-only in the guest'
     printf 'export SDFR_KEEP_LOGS=%q # a failed test copies its lab folders there\n' "$keep"
+    # The guest's /tmp is an overlay whose lower layer is the host's /tmp, live: pytest there
+    # numbers its folder after the host's pytest-of-root/pytest-N and sweeps old ones, while the
+    # host's runs make and delete theirs underneath (undefined for an overlay). The tests' folders
+    # (the labs, their daemons' sockets and state) go on a tmpfs of the guest's own instead.
+    echo 'mkdir -p /run/sdfr-netem && mount -t tmpfs -o mode=0700 sdfr-netem /run/sdfr-netem ||'
+    echo '    { echo "vm: cannot mount a tmpfs on /run/sdfr-netem for the tests folders" >&2; exit 1; }'
+    echo 'export TMPDIR=/run/sdfr-netem SDFR_VM_GUEST=1'
     # Not the hypothesis plugin: these tests do not use it, and importing it is a good part
     # of pytest's start-up under emulation.
-    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
+    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest --basetemp=/run/sdfr-netem/pytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
         "$(printf '%q ' "${pytest_args[@]}")"
     echo 'echo "${PIPESTATUS[0]}" >"$res/rc"'
     echo 'echo "vm: pytest done after $(cut -d" " -f1 /proc/uptime)s of uptime"'

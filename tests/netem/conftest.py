@@ -1,4 +1,5 @@
-"""The netem tier's failures keep their evidence: see tests/netem/keep.py."""
+"""The netem tier's folders: on the guest's own tmpfs in the VM, and a failure keeps them
+(see tests/netem/keep.py)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,15 @@ from typing import Any
 
 import pytest
 
-from tests.netem.keep import keep_failed
+from tests.netem.keep import check_guest_folders, keep_failed
 
 _kept: list[str] = []
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    factory = getattr(session.config, "_tmp_path_factory", None)
+    if factory is not None and (why := check_guest_folders(Path(factory.getbasetemp()))):
+        raise pytest.UsageError(why)
 
 
 @pytest.hookimpl(hookwrapper=True)

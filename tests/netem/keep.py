@@ -1,7 +1,10 @@
-"""Keeping the lab folders of a failed netem test: what the daemons logged, their state.
+"""Where the netem tier's folders are, and keeping them when a test fails.
 
-The netem tier runs in a VM whose /tmp (where pytest makes the tests' folders, the labs'
-workdirs among them) ends with it. When a test fails, `keep_tree` copies the session's
+In the VM the tests' folders (the labs: their daemons' logs, sockets and state) must be on a
+filesystem of the guest's own: its /tmp is an overlay of the host's /tmp, which the host
+changes underneath (`check_guest_folders`; scripts/vm-netem.sh mounts a tmpfs for them).
+
+Those folders end with the VM. When a test fails, `keep_tree` copies the session's
 temporary folders -- every lab's robots' `sdfrd.log`, `state/` and the pcaps -- into
 $SDFR_KEEP_LOGS, a folder `scripts/vm-netem.sh` shares with the guest (`--rwdir`), so they
 are on the host after the VM is gone, even if it is killed later on. Sockets, pipes and
@@ -11,12 +14,56 @@ devices are not copied: they mean nothing once their process is gone.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import stat
 from pathlib import Path
 
 #: The folder a failed test's lab folders are copied into (set by scripts/vm-netem.sh).
 KEEP_ENV = "SDFR_KEEP_LOGS"
+#: Set by scripts/vm-netem.sh in the guest, whose tests' folders must be on its own tmpfs.
+GUEST_ENV = "SDFR_VM_GUEST"
+
+
+def _unescape(field: str) -> str:
+    """A path of /proc/self/mountinfo, whose spaces and such are written in octal (\\040)."""
+    return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), field)
+
+
+def fs_type(path: Path, mountinfo: str) -> str:
+    """The type of the filesystem `path` (absolute, links resolved) is on, by the mount table
+    `mountinfo` (the text of /proc/self/mountinfo): its deepest mount point above `path`."""
+    best, kind = "", "?"
+    for line in mountinfo.splitlines():
+        fields = line.split()
+        if "-" not in fields[6:]:
+            continue
+        point = _unescape(fields[4])
+        sep = fields.index("-", 6)
+        inside = path == Path(point) or Path(point) in path.parents
+        if inside and len(point) >= len(best):  # (a later mount on the same point hides it)
+            best, kind = point, fields[sep + 1]
+    return kind
+
+
+def check_guest_folders(basetemp: Path, mountinfo: str | None = None) -> str | None:
+    """In the VM (GUEST_ENV set): why the tests' folders must not be where they are, or None.
+    The guest's /tmp is an overlay of the host's /tmp, which the host changes underneath
+    (its own pytest runs make and remove pytest-of-root/pytest-N there). `mountinfo`: the
+    mount table (default: this process's)."""
+    if not os.environ.get(GUEST_ENV):
+        return None
+    if mountinfo is None:
+        with open("/proc/self/mountinfo") as f:
+            mountinfo = f.read()
+    kind = fs_type(basetemp.resolve(), mountinfo)
+    if kind == "overlay":
+        return (
+            f"the tests' folders ({basetemp}) are on an overlay of the host's filesystem, "
+            "which the host changes underneath; scripts/vm-netem.sh gives them a tmpfs "
+            "(pytest --basetemp) of the guest's own"
+        )
+    return None
 
 
 def _copy(src: Path, dest: Path) -> None:

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from tests.netem.keep import KEEP_ENV, keep_failed, keep_tree
+from tests.netem.keep import (
+    GUEST_ENV,
+    KEEP_ENV,
+    check_guest_folders,
+    fs_type,
+    keep_failed,
+    keep_tree,
+)
 
 
 def a_lab(base: Path) -> Path:
@@ -72,3 +79,45 @@ def test_without_keep_logs_a_failure_names_pytests_own_folder(
     monkeypatch.delenv(KEEP_ENV, raising=False)
     text = keep_failed(tmp_path, "t (call)")
     assert f"are in {tmp_path}" in text and KEEP_ENV in text
+
+
+# A guest's mount table as virtme-ng makes it: / from the host (9p), /tmp an overlay whose
+# lower layer is the host's /tmp, /run a tmpfs, and the tmpfs vm-netem.sh mounts for the tests.
+MOUNTINFO = """\
+22 1 0:20 / / ro,relatime - 9p /dev/root ro,access=any,trans=virtio
+30 22 0:26 / /run rw,relatime - tmpfs run rw,mode=755
+41 22 0:35 / /tmp rw,relatime - overlay virtme_rw_overlay7 rw,lowerdir=/tmp,upperdir=/run/tmp
+44 41 0:38 / /tmp/sdfr-vm-netem.abc rw,relatime - 9p rwdir1 rw,access=any
+52 30 0:41 / /run/sdfr-netem rw,relatime - tmpfs sdfr-netem rw,mode=700
+53 22 0:42 / /srv/a\\040b rw,relatime - tmpfs x rw
+"""
+
+
+@pytest.mark.parametrize(
+    ("path", "kind"),
+    [
+        ("/tmp/pytest-of-root/pytest-306/netem-fleet0/lab/r3/state", "overlay"),
+        ("/tmp", "overlay"),
+        ("/tmp/sdfr-vm-netem.abc/junit.xml", "9p"),
+        ("/tmp/sdfr-vm-netem.abcd", "overlay"),  # (not under the 9p mount: a longer name)
+        ("/run/sdfr-netem/pytest/netem-fleet0", "tmpfs"),
+        ("/run/tmp", "tmpfs"),
+        ("/srv/a b/c", "tmpfs"),
+        ("/work/main", "9p"),
+    ],
+)
+def test_fs_type_is_the_deepest_mount_above_a_path(path: str, kind: str) -> None:
+    assert fs_type(Path(path), MOUNTINFO) == kind
+
+
+def test_in_the_guest_the_tests_folders_must_not_be_on_the_hosts_overlay(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    overlay = Path("/tmp/pytest-of-root/pytest-306")
+    own = Path("/run/sdfr-netem/pytest")
+    monkeypatch.delenv(GUEST_ENV, raising=False)
+    assert check_guest_folders(overlay, MOUNTINFO) is None  # (not in the VM: wherever it is)
+    monkeypatch.setenv(GUEST_ENV, "1")
+    why = check_guest_folders(overlay, MOUNTINFO)
+    assert why is not None and str(overlay) in why and "overlay" in why and "tmpfs" in why
+    assert check_guest_folders(own, MOUNTINFO) is None
