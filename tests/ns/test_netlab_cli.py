@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -76,18 +77,22 @@ def test_logs_prints_and_follows_a_robots_daemon_log(name: str) -> None:
     wrong = netlab("logs", name, "r3")
     assert wrong.returncode == 1 and "no robot 'r3'" in wrong.stderr
     follow = subprocess.Popen(
-        [sys.executable, "-m", "netlab.cli", "logs", name, "r2", "-f", "-n", "0"],
+        [sys.executable, "-m", "netlab.cli", "logs", name, "r2", "-f", "-n", "1"],
         stdout=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
     )  # fmt: skip
+    guard = threading.Timer(30.0, follow.kill)  # a line that never comes fails, not hangs
+    guard.start()
     try:
+        assert follow.stdout is not None
+        assert follow.stdout.readline()  # the last line: it follows from here on
         with open(log, "a") as f:
             f.write("a line appended while following\n")
-        assert follow.stdout is not None
         line = follow.stdout.readline()
         while line and "appended while following" not in line:
             line = follow.stdout.readline()
         assert "appended while following" in line
     finally:
+        guard.cancel()
         follow.send_signal(signal.SIGINT)
         assert follow.wait(10) == 130
 
