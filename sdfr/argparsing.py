@@ -1,4 +1,5 @@
-"""An argparse parser whose errors are one line with the closest spelling, not the usage.
+"""An argparse parser whose errors are one line with the closest spelling, not the usage:
+the one parser of `netlab`, `sdfr` and `sdfrd`.
 
     p = HintingParser(prog="netlab")   # subparsers inherit the class
     p.parse_args(["stauts"])
@@ -32,6 +33,14 @@ class HintingParser(argparse.ArgumentParser):
             self._seen = list(args)
         return super().parse_known_args(args, namespace)
 
+    def parse_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: Any = None
+    ) -> argparse.Namespace:
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:  # (said by the action's own parser: its options are the ones that apply)
+            _chosen(self, ns).error(f"unrecognized arguments: {' '.join(extras)}")
+        return ns
+
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: {self.explain(message)}; `{self.prog} --help` shows usage\n")
 
@@ -45,7 +54,8 @@ class HintingParser(argparse.ArgumentParser):
         if choice is not None:
             word = _unquote(choice["word"])
             offered = [_unquote(q) for q in _QUOTED.findall(message[choice.end() :])]
-            what = "command" if choice["arg"] == "COMMAND" else f"value for {choice['arg']}"
+            command = choice["arg"] in self._command_args()
+            what = "command" if command else f"value for {choice['arg']}"
             close = closest(word, offered)
             hint = f" (did you mean {close!r}?)" if close else f" (one of {', '.join(offered)})"
             return f"unknown {what} {word!r}{hint}"
@@ -75,6 +85,15 @@ class HintingParser(argparse.ArgumentParser):
                 out.append(flag)  # (a unique prefix of a long flag is argparse's to judge)
         return out
 
+    def _command_args(self) -> set[str]:
+        """How argparse names the command arguments (sub-parsers) of this tree in errors."""
+        return {
+            str(a.metavar or a.dest)
+            for p in self._tree()
+            for a in p._actions
+            if isinstance(a, argparse._SubParsersAction)
+        } | {"COMMAND"}
+
     def _all_options(self) -> list[str]:
         return sorted({o for p in self._tree() for o in p._option_string_actions})
 
@@ -85,6 +104,16 @@ class HintingParser(argparse.ArgumentParser):
                 for sub in action.choices.values():
                     if isinstance(sub, HintingParser):
                         yield from sub._tree()
+
+
+def _chosen(parser: argparse.ArgumentParser, ns: argparse.Namespace) -> argparse.ArgumentParser:
+    """The innermost (sub)parser of the command given."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            name = getattr(ns, action.dest or "", None)
+            if isinstance(name, str) and name in action.choices:
+                return _chosen(action.choices[name], ns)
+    return parser
 
 
 def _unquote(text: str) -> str:

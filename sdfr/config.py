@@ -441,9 +441,9 @@ def load_toml(path: Path) -> dict[str, object]:
 
 def build_parser() -> argparse.ArgumentParser:
     # (imported here: see _plain_flags)
-    from sdfr.usage import UsageParser
+    from sdfr.argparsing import HintingParser
 
-    p = UsageParser(
+    p = HintingParser(
         prog="sdfrd",
         description="SDfR daemon: discovers the reachable robots of a fleet and their services, "
         "and serves them to local programs over a REST API.",

@@ -72,8 +72,7 @@ def test_a_mistyped_sdfrd_flag_is_one_line_with_the_closest_spelling(
         config.from_args(["--iface-name", "lo"])
     assert done.value.code == 2
     assert capsys.readouterr().err == (
-        "sdfrd: error: unrecognized arguments: --iface-name lo (--iface-name: did you mean "
-        "--iface?); see sdfrd --help\n"
+        "sdfrd: unknown option --iface-name (did you mean '--iface'?); `sdfrd --help` shows usage\n"
     )
 
 

@@ -44,7 +44,7 @@ def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
         (["up", "a", "--robts", "2"], "tool up: unknown option --robts (did you mean '--robots'?)"),
         (["up", "a", "--robots", "2", "--topolgy=x"], "unknown option --topolgy (did you mean"),
         (["up"], "tool up: the following arguments are required: name, --robots"),
-        (["status", "x"], "tool: unexpected argument x"),
+        (["status", "x"], "tool status: unexpected argument x"),
     ],
 )
 def test_a_command_line_mistake_is_one_line_naming_the_closest_spelling(
