@@ -53,7 +53,7 @@ def lab_name(image: str) -> Iterator[str]:
     name = unique_lab_name()
     links, vols = host_links(), volumes()
     yield name
-    netlab("down", name)
+    netlab("down", name, "--cleanup")
     assert nothing_left(name) == []
     assert host_links() - links == set()
     assert volumes() - vols == set()
@@ -104,7 +104,7 @@ def test_up_exec_status_down_with_containers(lab_name: str) -> None:
     status = json.loads(netlab("status", lab_name, "--json").stdout)["labs"][0]
     assert {r["runtime"] for r in status["robots"].values()} == {"docker"}
     assert all(r["present"] and r["sdfrd"] for r in status["robots"].values())
-    down = netlab("down", lab_name)
+    down = netlab("down", lab_name, "--cleanup")
     assert down.returncode == 0, down.stderr
     assert "6 containers" in down.stdout and "4 namespaces" in down.stdout
 
@@ -198,7 +198,7 @@ def test_netlab_down_removes_a_container_lab_whose_runner_was_killed(
             runner.kill()
             runner.wait()
     made = docker.labelled(lab_name)
-    down = netlab("down", lab_name)
+    down = netlab("down", lab_name, "--cleanup")
     assert down.returncode == 0, down.stderr
     assert nothing_left(lab_name) == [], f"killed after {after} s with {made}"
     again = netlab("down", lab_name)

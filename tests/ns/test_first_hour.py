@@ -167,5 +167,8 @@ def _down_labs_it_made(clone: Path, stdout: str) -> None:
     for lab in set(re.findall(r"^lab (\w+): \d+ robots", stdout, flags=re.M)):
         if netlab.exists():
             subprocess.run(
-                [str(netlab), "down", lab], capture_output=True, timeout=120, check=False
+                [str(netlab), "down", lab, "--cleanup"],
+                capture_output=True,
+                timeout=120,
+                check=False,
             )

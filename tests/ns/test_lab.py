@@ -469,7 +469,9 @@ time.sleep(600)
                 proc.kill()
                 proc.wait()
         subprocess.run(
-            [sys.executable, "-m", "netlab.cli", "down", name], capture_output=True, timeout=60
+            [sys.executable, "-m", "netlab.cli", "down", name, "--cleanup"],
+            capture_output=True,
+            timeout=60,
         )
 
 
