@@ -14,7 +14,7 @@ import pytest
 from netlab import manifest
 from netlab.lab import Lab
 from sdfr.client import Client
-from tests.support.fleets import unique_lab_name
+from tests.support.netlab_cli import cli_lab, netlab
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
@@ -35,19 +35,9 @@ loss = 10
 """
 
 
-def netlab(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "netlab.cli", *args],
-        capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL,
-    )  # fmt: skip
-
-
 @pytest.fixture
 def name() -> Iterator[str]:
-    lab = unique_lab_name()
-    yield lab
-    netlab("down", lab, "--cleanup")
-    assert manifest.load(lab) is None
+    yield from cli_lab()
 
 
 def links(lab: str) -> dict[tuple[str, str], float]:

@@ -15,27 +15,16 @@ from pathlib import Path
 
 import pytest
 
-from netlab import manifest
-from tests.support.fleets import unique_lab_name
+from tests.support.netlab_cli import cli_lab, netlab
 
 pytestmark = pytest.mark.root
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def netlab(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "netlab.cli", *args],
-        capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL,
-    )  # fmt: skip
-
-
 @pytest.fixture
 def name() -> Iterator[str]:
-    lab = unique_lab_name()
-    yield lab
-    netlab("down", lab, "--cleanup")
-    assert manifest.load(lab) is None
+    yield from cli_lab()
 
 
 def _folder(up: subprocess.CompletedProcess[str]) -> Path:
