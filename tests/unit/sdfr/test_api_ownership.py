@@ -318,14 +318,7 @@ async def test_one_client_cannot_take_every_event_stream(
 # -- the clients remember their token -------------------------------------------------------------
 
 
-@pytest.fixture
-def layer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ApiLayer]:
-    api = ApiLayer(tmp_path_factory.mktemp("own"))
-    api.start()
-    try:
-        yield api
-    finally:
-        api.stop()
+# (`layer`: the API layer as a process, tests/unit/sdfr/conftest.py.)
 
 
 def test_each_client_is_a_program_of_its_own(layer: ApiLayer) -> None:
