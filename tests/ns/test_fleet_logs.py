@@ -37,38 +37,30 @@ def _said(lab: Lab, robot: str, pattern: str) -> Callable[[], bool | str]:
     return check
 
 
+def _every_log_says(
+    lab: Lab, pairs: list[tuple[str, str]], what: str, pattern: str, within: float
+) -> None:
+    """Wait until robot a's log has the line `pattern` (with `{b}` for the peer) for each
+    (a, b) of `pairs`."""
+    for a, b in pairs:
+        poll(f"{a} logs {b}{what}", _said(lab, a, pattern.format(b=b)), within)
+
+
 def test_a_partition_and_merge_is_explained_in_every_robots_log(
     fleet_factory: Callable[..., Lab],
 ) -> None:
     lab = fleet_factory(4, beacon=BEACON)
     left, right = ["r1", "r2"], ["r3", "r4"]
-    for a in left + right:
-        for b in left + right:
-            if a != b:
-                poll(
-                    f"{a} logs {b}",
-                    _said(lab, a, f"robot {b} appeared at \\S+ \\(first seen\\).*"),
-                    10,
-                )
+    everyone = [(a, b) for a in left + right for b in left + right if a != b]
+    across = [(a, b) for x, y in ((left, right), (right, left)) for a in x for b in y]
+    _every_log_says(lab, everyone, "", "robot {b} appeared at \\S+ \\(first seen\\).*", 10)
     lab.partition([left, right])
     cut = datetime.now().astimezone()
-    for side, other in ((left, right), (right, left)):
-        for a in side:
-            for b in other:
-                poll(
-                    f"{a} logs {b} unreachable",
-                    _said(lab, a, f"robot {b} unreachable: silent for .*"),
-                    3 * BEACON + 10,
-                )
+    _every_log_says(
+        lab, across, " unreachable", "robot {b} unreachable: silent for .*", 3 * BEACON + 10
+    )
     lab.merge()
-    for side, other in ((left, right), (right, left)):
-        for a in side:
-            for b in other:
-                poll(
-                    f"{a} logs {b} back",
-                    _said(lab, a, f"robot {b} came back at \\S+ after .*"),
-                    BEACON + 10,
-                )
+    _every_log_says(lab, across, " back", "robot {b} came back at \\S+ after .*", BEACON + 10)
     # Each robot's lines are in time order, and say the partition after it began.
     for robot in left + right:
         lines = _fleet_lines(lab, robot)
