@@ -17,6 +17,7 @@ from collections.abc import Iterable, Sequence
 
 from sdfr import events
 from sdfr.daemon.logs import FIELDS
+from sdfr.limits import TokenBucket
 from sdfr.model import CONTROL_RE, PeerRecord, Service
 
 log = logging.getLogger("sdfrd.fleet")
@@ -75,8 +76,7 @@ class FleetLog:
         self.rate = rate
         self.summary_every = summary_every
         self.logger = logger
-        self._tokens = float(burst)
-        self._refilled: float | None = None
+        self._lines = TokenBucket(rate, burst)
         self._held: Counter[str] = Counter()
         self._summarised: float | None = None
 
@@ -98,7 +98,6 @@ class FleetLog:
 
     def tick(self, now: float) -> None:
         """Say what was held back, if it is time (the discovery layer's periodic tick)."""
-        self._refill(now)
         self._summary(now)
 
     # -- the lines -----------------------------------------------------------------------
@@ -153,18 +152,11 @@ class FleetLog:
 
     # -- the rate bound ------------------------------------------------------------------
 
-    def _refill(self, now: float) -> None:
-        if self._refilled is not None:
-            self._tokens = min(self.burst, self._tokens + (now - self._refilled) * self.rate)
-        self._refilled = now
-
     def _say(self, now: float, text: str, fields: dict[str, object]) -> None:
-        self._refill(now)
-        if self._tokens < 1:
+        if not self._lines.take(now):
             self._held[str(fields["event"])] += 1
             return
         self._summary(now)
-        self._tokens -= 1
         self.logger.info(text, extra={FIELDS: fields})
 
     def _summary(self, now: float) -> None:
