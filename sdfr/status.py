@@ -121,6 +121,9 @@ class DiscoveryStatus:
     #: The layer's thread (its kernel thread id) when it is a thread of sdfrd (`--layers
     #: threads`): a layer whose thread ended is down though its process runs on.
     thread: int | None = None
+    #: True until the layer speaks on the fleet's network (its address bound, its
+    #: description served, its core started): a layer alive but not yet discovering.
+    starting: bool = False
     robot_id: str | None = None
     fleet: int = 0
     iface: str | None = None

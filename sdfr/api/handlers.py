@@ -493,12 +493,15 @@ async def health(request: Request) -> Response:
     failing = discovery_error(disc.status) if disc.up and disc.status else None
     warnings = health_warnings(disc.status) if disc.up and disc.status else []
     cannot_write = state_problem(state, disc)
-    ok = disc.up and failing is None and cannot_write is None
+    starting = disc.up and disc.status is not None and disc.status.starting
+    ok = disc.up and not starting and failing is None and cannot_write is None
     return json_response(
         {
             "status": "degraded" if not ok else "warning" if warnings else "ok",
             "api": "up",
-            "discovery": "failing" if failing else "up" if disc.up else "down",
+            "discovery": ("failing" if failing else "starting" if starting else "up")
+            if disc.up
+            else "down",
             "discovery_heartbeat_age": disc.heartbeat_age,
             "discovery_error": failing,
             "state": "ok" if cannot_write is None else cannot_write[0],

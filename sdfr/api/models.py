@@ -169,16 +169,18 @@ class Health(Struct):
     status: Annotated[
         Literal["ok", "warning", "degraded"],
         Meta(
-            description="degraded: the discovery layer is down or failing, or the state "
+            description="degraded: the discovery layer is down, starting or failing, or the state "
             "directory cannot be written (503); warning: up, with warnings"
         ),
     ]
     api: Literal["up"]
     discovery: Annotated[
-        Literal["up", "failing", "down"],
+        Literal["up", "starting", "failing", "down"],
         Meta(
-            description="failing: alive, but its work keeps failing or it cannot announce "
-            "this robot's services (see discovery_error)"
+            description="starting: alive, not yet speaking on the fleet's network (its "
+            "address not yet bound, its description not yet served; 503); failing: alive, "
+            "but its work keeps failing or it cannot announce this robot's services (see "
+            "discovery_error)"
         ),
     ]
     discovery_heartbeat_age: float | None

@@ -94,6 +94,8 @@ class DiscoveryLayer:
         self.loop = asyncio.get_running_loop()
         self.clock_offset = time.time() - time.monotonic()
         self.started = time.time()
+        #: Until `_run` has started the core: /health says "starting", not "up".
+        self._starting = True
         self.boot_id = store.next_boot_id(time.time())
         version, services = store.local_state()
         self.keyring_path = keystore.keyring_path(cfg.state_dir)
@@ -211,12 +213,13 @@ class DiscoveryLayer:
             if self._stopping.is_set():
                 self._close_addressing()
                 return
+        self._check_address()
+        await self._serve_description(first=True)  # a failure here leaves no reader behind
         self.loop.add_reader(self.sock.fileno(), self._on_readable)
         self.loop.add_reader(self.control.fileno(), self._on_control)
-        self._check_address()
-        await self._serve_description(first=True)
         self.core.start(time.monotonic())
         self._pump()
+        self._starting = False
         self._write_status()
         log.info(
             "discovery up: robot %s fleet %d on %s (%s), boot %d; %d robots known from before",
@@ -338,6 +341,7 @@ class DiscoveryLayer:
         """What changes the status record besides its heartbeat and counters, cheaply."""
         core, machine, conflict = self.core, self.addressing, self.core.conflict
         return (
+            self._starting,
             core.version,
             sum(1 for p in core.peers.values() if p.reachable),
             len(core.peers),
@@ -641,6 +645,7 @@ class DiscoveryLayer:
             thread=None
             if threading.current_thread() is threading.main_thread()
             else threading.get_native_id(),
+            starting=self._starting,
             robot_id=self.cfg.robot_id,
             fleet=self.cfg.fleet,
             iface=self.iface,

@@ -76,6 +76,7 @@ def _layer(cfg: Config, store: Store) -> Iterator[DiscoveryLayer]:
     # Its loop does not run here: the API layer is to read the status file it writes, not ask
     # it on its control socket (and wait for an answer that never comes).
     (cfg.state_dir / CONTROL_NAME).unlink()
+    layer._starting = False  # as after its start, which needs the loop
     try:
         yield layer
     finally:
