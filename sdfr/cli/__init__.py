@@ -49,6 +49,17 @@ def main(argv: list[str] | None = None) -> int:
     args.timeout = getattr(args, "timeout", 5.0)
     if args.command == "publish" and args.hold and args.ttl is None:
         return usage_error("publish: --hold keeps a lease: give --ttl SECONDS too")
+    if args.command in ("wifi-config", "example"):
+        given = [f"--{n.replace('_', '-')}" for n in ("api", "socket", "state_dir") if n in args]
+        if given:
+            return usage_error(
+                f"{args.command} does not talk to sdfrd: {', '.join(given)} has no use here"
+                + (
+                    "; give sdfrd's configuration with --config"
+                    if args.command != "example"
+                    else ""
+                )
+            )
     if args.command == "wifi-config":
         return wifi_config(args)
     if args.command == "example":

@@ -387,3 +387,18 @@ def test_the_key_is_the_same_without_openssl() -> None:
     finally:
         sys.modules["_hashlib"] = saved
     assert fallback == hashlib.pbkdf2_hmac("sha256", long, b"s", 10, 32)
+
+
+@pytest.mark.parametrize("where", [["--api", "10.0.0.2:8042"], ["--state-dir", "/tmp/x"]])
+def test_local_actions_refuse_options_that_name_a_daemon(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], where: list[str]
+) -> None:
+    """wifi-config and example never talk to sdfrd: --api/--socket/--state-dir there would be
+    silently ignored (a user who meant another robot's daemon would plan this one's)."""
+    conf = write_config(tmp_path)
+    assert sdfr([*where, "wifi-config", "--config", str(conf), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert f"wifi-config does not talk to sdfrd: {where[0]} has no use here" in err
+    assert "--config" in err
+    assert sdfr(["example", "robot.toml", *where]) == 2
+    assert f"example does not talk to sdfrd: {where[0]}" in capsys.readouterr().err
