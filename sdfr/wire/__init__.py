@@ -7,17 +7,18 @@ line and, for `Update` only, a JSON body.  SDfR's own fields travel in `X-SDFR-*
 standard SSDP clients see an SDfR robot as an ordinary root device answering their searches.
 
 The package: `messages` (the message types, the limits, what both sides share), `encode`
-and `decode`.
+(the entry point, the full form, what fits in an Update), `compact` (the compact form),
+`fields` (the checks and bodies both forms share) and `decode`.
 """
 
 from __future__ import annotations
 
+from sdfr.wire.compact import last_step
 from sdfr.wire.decode import decode, read_step, unpack_delta
 from sdfr.wire.encode import (
     check_service_fits,
     encode,
     encode_update_parts,
-    last_step,
     max_service_json_bytes,
     parts_needed,
     service_json_size,
