@@ -11,7 +11,7 @@ Four measures, each signed and unsigned (open and keyed) side by side in the sam
    stream of beacons and pings of a peer it has proven (in a two-robot simulator run);
    medians of repeated timed loops;
 3. a fleet: 6 robots with 100 services each, 5 minutes of virtual time at the product's 10 s
-   beacon (the protocol core on an in-memory medium, tests/support/simnet.py), bytes each robot
+   beacon (the protocol core on an in-memory medium, sdfr.testing.simnet), bytes each robot
    sent and received (UDP payload), open and keyed;
 4. dynamics: the same fleet (6 robots, 100 services, CoreConfig defaults), open and keyed,
    over several seeds and at two link delays (1-4 ms and 20-50 ms one way): how long a new
@@ -47,16 +47,14 @@ from collections.abc import Callable, Iterator
 from datetime import datetime
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import sdfr
 from sdfr import auth, wire
 from sdfr.auth import Keyring, Sealed
 from sdfr.model import Service, service_digest
+from sdfr.testing.simnet import SimNet, kind_of
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Reject, Response, Update
-
-if TYPE_CHECKING:
-    from tests.support.simnet import SimNet
 
 ROOT = Path(__file__).resolve().parent.parent
 KEY = bytes(range(32))
@@ -223,25 +221,17 @@ def seal_and_check_cpu(n: int, repeats: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def simnet() -> type[SimNet]:
-    sys.path.insert(0, str(ROOT))
-    from tests.support.simnet import SimNet  # the tests' in-memory medium: one definition of it
-
-    return SimNet
-
-
 def receive_cpu(n: int, repeats: int) -> dict[str, float]:
     """µs per datagram through Core.receive: beacons and pings of a peer it has proven.
 
     r1 and r2 meet in the simulator first (r1 challenges r2, r2 answers: r2 is listed by r1,
     by either core's rules); then r1's core alone is fed a stream of r2's beacons and pings,
     4 ms apart (under the per-source limit, and within r2's proof window)."""
-    sim = simnet()
     out: dict[str, float] = {}
     for label, ring in (("unsigned", auth.OPEN), ("signed", Keyring.of([KEY]))):
         samples = []
         for r in range(repeats):
-            net = sim(seed=r + 1)
+            net = SimNet(seed=r + 1)
             net.add("r1", services=services("r1", 10), keyring=ring)
             net.add("r2", services=services("r2", 10), keyring=ring)
             net.run_for(15.0)
@@ -286,10 +276,9 @@ def fleet_bytes(robots: int, n_services: int, seconds: float) -> dict[str, objec
     """Per robot, bytes sent and received, open and keyed: during the start-up (the first
     STARTUP_S, everyone fetching everyone's set), then in `seconds` of steady state scaled to
     5 minutes.  Virtual time, so the numbers are exact and the run takes a second."""
-    sim = simnet()
     out: dict[str, Any] = {}
     for label, ring in (("open", auth.OPEN), ("keyed", Keyring.of([KEY]))):
-        net = sim(seed=7)
+        net = SimNet(seed=7)
         names = [f"r{i}" for i in range(1, robots + 1)]
         for name in names:
             net.add(name, services=services(name, n_services), keyring=ring)
@@ -398,7 +387,6 @@ class Air:
         self.datagrams = 0
         self.rx = 0
         self.kinds: Counter[str] = Counter()
-        from tests.support.simnet import kind_of
 
         def sent(node: object, data: bytes, dst: object) -> None:
             self.tx += len(data)
@@ -452,7 +440,7 @@ def reseed(net: SimNet, seed: int, step: int) -> None:
 def join_and_restarts(ring: Keyring, delay: tuple[float, float], seed: int) -> dict[str, Any]:
     """One fleet: r1..r5 settle; r6 joins; later r3 restarts (stop, start at once) and r4 is
     killed and started again DOWN_S later; each start at a random phase of the beacons."""
-    net = simnet()(seed=seed, delay=delay)
+    net = SimNet(seed=seed, delay=delay)
     phase = random.Random(seed * 7919 + 1)
     names = fleet_of(net, DYN_ROBOTS - 1, ring)
     net.run_for(STARTUP_S + phase.uniform(0, 10))
@@ -490,7 +478,7 @@ def idle_and_churn(
 ) -> dict[str, Any]:
     """A settled fleet of DYN_ROBOTS: `seconds` idle, then `seconds` with a service change every
     CHURN_EVERY_S on one robot after the other (one service's attributes change: a delta)."""
-    net = simnet()(seed=seed, delay=delay)
+    net = SimNet(seed=seed, delay=delay)
     names = fleet_of(net, DYN_ROBOTS, ring)
     net.run_for(60.0)
     assert net.all_see_all(names), "the fleet did not settle"
@@ -626,7 +614,7 @@ def dynamics(seeds: int, bytes_seeds: int, seconds: float) -> dict[str, Any]:
         out[label] = side
     out["conditions"] = (
         f"{DYN_ROBOTS} robots, {DYN_SERVICES} services each, CoreConfig defaults (10 s beacon, "
-        "miss limit 3); protocol cores on the in-memory medium of tests/support/simnet.py in "
+        "miss limit 3); protocol cores on the in-memory medium of sdfr.testing.simnet in "
         "virtual time, no loss, each link delay uniform in the range named (one way). "
         "join: r1..r5 settle for 30-40 s, then r6 starts; 'both' runs from its start until "
         "every other robot lists it (reachable, proven, at its boot, with its whole set: "
@@ -681,14 +669,21 @@ def core_identity() -> dict[str, Any]:
 
 
 #: Run in the child: import sdfr from the baseline's tree before anything else, then the
-#: bench (and tests/support) from this checkout; sdfr stays the one already imported.
+#: bench and the simulator (`sdfr.testing`) from this checkout; the rest of sdfr stays the
+#: baseline's, already imported.
 _LAUNCH = """
-import runpy, sys
+import importlib.util, runpy, sys
 core, root = sys.argv[1], sys.argv[2]
 sys.path[:] = [p for p in sys.path if p not in ("", ".", root)]
 sys.path.insert(0, core)
 import sdfr
 assert sdfr.__file__.startswith(core), sdfr.__file__
+testing = root + "/sdfr/testing"
+spec = importlib.util.spec_from_file_location(
+    "sdfr.testing", testing + "/__init__.py", submodule_search_locations=[testing]
+)
+sdfr.testing = sys.modules["sdfr.testing"] = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(sdfr.testing)
 sys.path[0] = root
 sys.argv = ["bench.auth", *sys.argv[3:]]
 runpy.run_module("bench.auth", run_name="__main__", alter_sys=True)

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from sdfr import wire
 from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Addr
-from tests.support.simnet import Node, SimNet
+from sdfr.testing.simnet import Node, SimNet
 
 OUTSIDER: Addr = ("10.1.0.66", 1900)
 VICTIM: Addr = ("10.1.0.77", 1900)
@@ -66,7 +66,7 @@ class Violation(AssertionError):
 
 
 def kind(msg: wire.Message | wire.Reject) -> str:
-    """`tests.support.simnet.kind_of` of a decoded datagram."""
+    """`sdfr.testing.simnet.kind_of` of a decoded datagram."""
     if isinstance(msg, wire.Update):
         return "update" if msg.base is None else "delta"
     if isinstance(msg, wire.Discovery):

@@ -1,6 +1,6 @@
 """A patient outsider against real protocol cores, as hypothesis stateful tests (issue 25).
 
-A fleet of 3 or 4 robots (`tests.support.simnet`), keyed (`Keyring.of([key])`) or open, and
+A fleet of 3 or 4 robots (`sdfr.testing.simnet`), keyed (`Keyring.of([key])`) or open, and
 an outsider without the key that captures every datagram and may drop, delay, duplicate,
 replay, relay (another address, another robot) and spoof (any source address) any of them;
 robots are partitioned, killed and restarted (gracefully or silently, with a new, the same
@@ -46,6 +46,7 @@ from sdfr import wire
 from sdfr.auth import OPEN, Keyring
 from sdfr.model import Service
 from sdfr.protocol import Addr
+from sdfr.testing.simnet import BEACON, SimNet, services
 from tests.support.adversary import (
     INVARIANTS,
     OUTSIDER,
@@ -56,12 +57,11 @@ from tests.support.adversary import (
     World,
     pick,
 )
-from tests.support.simnet import BEACON, SimNet, services
 
 KEY = bytes(range(32))
 NAMES = ("r1", "r2", "r3", "r4")
 FIRST_BOOT = 10
-#: Kinds of datagram (`tests.support.simnet.kind_of`), the simplest first (shrinking goes there).
+#: Kinds of datagram (`sdfr.testing.simnet.kind_of`), the simplest first (shrinking goes there).
 KINDS = ("alive", "reply", "ping", "update", "byebye", "search", "fetch", "delta", "response")
 SOURCES = ("sender", "outsider", "victim", *NAMES)
 TARGETS = ("dst", "all", *NAMES)

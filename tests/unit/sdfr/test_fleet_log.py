@@ -10,7 +10,7 @@ from sdfr import wire
 from sdfr.daemon.fleetlog import FleetLog, duration
 from sdfr.daemon.logs import FIELDS
 from sdfr.model import PeerRecord, Service, service_digest
-from tests.support.simnet import BEACON, SimNet
+from sdfr.testing.simnet import BEACON, SimNet
 
 
 class _Lines(logging.Handler):

@@ -7,7 +7,7 @@ import pytest
 from sdfr import wire
 from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Core, CoreConfig
-from tests.support.simnet import BEACON, SimNet, fleet, kind_of, sent, services
+from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, sent, services
 from tests.support.wire_data import noisy_services
 
 

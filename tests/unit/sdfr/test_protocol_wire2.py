@@ -11,7 +11,7 @@ from sdfr import auth, wire
 from sdfr.auth import Keyring
 from sdfr.model import Service
 from sdfr.protocol.config import REPAIR_MEMORY, answers_beacon
-from tests.support.simnet import BEACON, SimNet, kind_of, sent, services
+from sdfr.testing.simnet import BEACON, SimNet, kind_of, sent, services
 
 #: The product's ping: one per beacon period, so beacons are the pings.
 PRODUCT = {"beacon_interval": BEACON, "ping_interval": BEACON}

@@ -24,8 +24,8 @@ from sdfr.protocol import (
     SOURCE_RATE,
     Addr,
 )
+from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, services
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Update
-from tests.support.simnet import BEACON, SimNet, fleet, kind_of, services
 from tests.support.wire_data import noisy_services
 
 K1 = bytes(range(32))

@@ -12,8 +12,8 @@ from sdfr import auth, wire
 from sdfr.auth import Keyring
 from sdfr.model import Service, service_digest
 from sdfr.protocol import UNPROVEN_BYTES, Addr, Core
+from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, services
 from sdfr.wire import Alive, Discovery, Origin, Response, Update
-from tests.support.simnet import BEACON, SimNet, fleet, kind_of, services
 
 KEY = bytes(range(32))
 OUTSIDER: Addr = ("10.1.0.66", 1900)

@@ -2,6 +2,10 @@
 
 Minutes of protocol time take milliseconds: nothing sleeps; the loop jumps
 from one event (a delivery or a core's deadline) to the next.
+
+`SimNet` is the medium and its robots (`Node`: a name, an address, a `Core`); `fleet` and
+`services` build a fleet at the short test beacon (`BEACON`); `kind_of` and `sent` say what
+the robots sent. The protocol's tests and `bench.auth` run on it.
 """
 
 from __future__ import annotations
@@ -21,6 +25,10 @@ from sdfr.protocol import Addr, Core, CoreConfig
 
 @dataclass
 class Node:
+    """One robot on the medium: its protocol core, whether it is on the air, the deadline its
+    timer is armed for, and every datagram it sent (time, bytes, destination; None:
+    multicast)."""
+
     name: str
     addr: Addr
     core: Core
@@ -75,6 +83,8 @@ class SimNet:
         keyring: Keyring = OPEN,
         **cfg: object,
     ) -> Node:
+        """A robot `name` at the next address 10.1.0.N, its core configured by `cfg`
+        (`CoreConfig` fields) and started now unless `start` is False."""
         index = len(self.nodes) + 1
         addr = (f"10.1.0.{index}", 1900)
         config = CoreConfig(fleet=1, robot_id=name, **cfg)  # type: ignore[arg-type]
@@ -139,6 +149,7 @@ class SimNet:
         self.nodes[name].up = False
 
     def stop(self, name: str) -> None:
+        """A clean stop: the core says goodbye (Byebye), then the node leaves the air."""
         node = self.nodes[name]
         node.core.stop(self.now)
         self._pump(node)
@@ -152,9 +163,11 @@ class SimNet:
                 self.blocked.add(frozenset((a, b)))
 
     def merge(self) -> None:
+        """Undo `partition`: every robot hears every other again."""
         self.blocked.clear()
 
     def set_services(self, name: str, version: int, services: Sequence[Service]) -> None:
+        """The robot's daemon publishes a new set (`version`) now."""
         node = self.nodes[name]
         node.core.set_services(version, services, self.now)
         self._pump(node)
@@ -176,9 +189,11 @@ class SimNet:
     # -- running -------------------------------------------------------------------------
 
     def run_for(self, seconds: float) -> None:
+        """Run the loop `seconds` of virtual time on."""
         self.run_until(self.now + seconds)
 
     def run_until(self, t_end: float) -> None:
+        """Run every event due until virtual time `t_end`, then set the clock there."""
         while self._queue and self._queue[0][0] <= t_end:
             t, _, action = heapq.heappop(self._queue)
             self.now = max(self.now, t)
@@ -204,10 +219,13 @@ class SimNet:
     # -- views ---------------------------------------------------------------------------
 
     def sees(self, a: str, b: str) -> bool:
+        """Robot `a` holds robot `b` as reachable."""
         peer = self.nodes[a].core.peers.get(b)
         return peer is not None and peer.reachable
 
     def all_see_all(self, names: Sequence[str] | None = None, with_services: bool = True) -> bool:
+        """Each of `names` (default: every robot) holds every other as reachable, with its
+        current set of services unless `with_services` is False."""
         names = list(names if names is not None else self.nodes)
         for a in names:
             for b in names:
@@ -307,6 +325,7 @@ BEACON = 1.0  # short beacons keep the virtual clock small; every deadline scale
 
 
 def services(robot: str, n: int = 100, tag: str = "") -> list[Service]:
+    """`n` services of robot `robot` (ids `<robot>-s<i><tag>`), of seven types."""
     return [
         Service(
             id=f"{robot}-s{i}{tag}",
