@@ -30,10 +30,12 @@ from typing import Any
 
 from netlab import naming
 from netlab.lab import Lab
-from tests.ros.harness import Probe, Proc, ros2_environ
+from sdfr.testing.ros import Probe, Proc, ros2_environ
 
 ROOT = Path(__file__).resolve().parent.parent
 ROS2_PY = ROOT / ".venv" / "ros2" / "bin" / "python"
+#: The ROS tests' probe (run as a script, not imported).
+PROBE = ROOT / "tests" / "ros" / "probe_ros2.py"
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -57,10 +59,7 @@ def measure(lab: Lab, poll: float, changes: int, tmp: Path, seed: int = 1) -> di
     envs = {"r1": ros2_environ(base), "r2": ros2_environ(base + 1)}
     argv = [str(ROS2_PY), "-m", "sdfr.ros.ros2", "--ros-args", "-p", f"poll_interval:={poll}"]
     nodes = [Proc(lab, r, argv, envs[r], tmp / f"node-{r}-{poll}.log") for r in envs]
-    probes = [
-        Probe(lab, r, ROS2_PY, "probe_ros2.py", envs[r], tmp / f"probe-{r}-{poll}.log")
-        for r in envs
-    ]
+    probes = [Probe(lab, r, ROS2_PY, PROBE, envs[r], tmp / f"probe-{r}-{poll}.log") for r in envs]
     p1, p2 = probes
     rng = random.Random(seed)
     published: list[float] = []

@@ -16,7 +16,8 @@ from typing import Any
 import pytest
 
 from netlab.lab import Lab
-from tests.ros.harness import Probe, Proc, robot_ids, ros1_environ, tail, wait_until
+from sdfr.testing.ros import Probe, Proc, tail
+from tests.ros.harness import PROBES, robot_ids, ros1_environ, wait_until
 
 pytestmark = pytest.mark.root
 
@@ -68,8 +69,8 @@ def test_the_same_flow_through_rospy_roslaunch_and_the_command_line(
         )  # fmt: skip
         procs.append(node2)
         probes += [
-            Probe(lab, "r1", ros1_env, "probe_ros1.py", env1, tmp_path / "probe1.log"),
-            Probe(lab, "r2", ros1_env, "probe_ros1.py", env2, tmp_path / "probe2.log"),
+            Probe(lab, "r1", ros1_env, PROBES / "probe_ros1.py", env1, tmp_path / "probe1.log"),
+            Probe(lab, "r2", ros1_env, PROBES / "probe_ros1.py", env2, tmp_path / "probe2.log"),
         ]
         run_flow(lab, *probes, env1, env2, node1, node2, tmp_path)
     except BaseException:

@@ -17,7 +17,8 @@ from typing import Any
 import pytest
 
 from netlab.lab import Lab
-from tests.ros.harness import REPO, Probe, Proc, robot_ids, ros2_environ, tail
+from sdfr.testing.ros import Probe, Proc, ros2_environ, tail
+from tests.ros.harness import PROBES, REPO, robot_ids
 
 pytestmark = pytest.mark.root
 
@@ -59,8 +60,8 @@ def test_a_service_published_on_one_robot_is_seen_and_found_on_the_other(
                   f"sdfrd_log:={tmp_path / 'sdfrd-r2.log'}", "poll_interval:=0.1"),
         env2, tmp_path / "node2.log",
     )  # fmt: skip
-    p1 = Probe(lab, "r1", ros2_env, "probe_ros2.py", env1, tmp_path / "probe1.log")
-    p2 = Probe(lab, "r2", ros2_env, "probe_ros2.py", env2, tmp_path / "probe2.log")
+    p1 = Probe(lab, "r1", ros2_env, PROBES / "probe_ros2.py", env1, tmp_path / "probe1.log")
+    p2 = Probe(lab, "r2", ros2_env, PROBES / "probe_ros2.py", env2, tmp_path / "probe2.log")
     try:
         run_flow(lab, p1, p2, node1, node2, tmp_path)
     except BaseException:
