@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         idle = phase(lab, pid, 10.0)
         net = ".".join(lab.robot("r1").ip.split(".")[:2])
         flood_argv = [
-            sys.executable, "-m", "tests.support.outsider", "flood", "--to", lab.robot("r1").ip,
+            sys.executable, "-m", "sdfr.testing.outsider", "flood", "--to", lab.robot("r1").ip,
             "--count", str(args.fakes), "--fleet", str(lab.fleet), "--net", net,
             "--rate", str(args.rate), "--seconds", str(seconds),
         ]  # fmt: skip

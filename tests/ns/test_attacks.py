@@ -1,6 +1,6 @@
 """A patient outsider against real daemons (issue 25; needs root).
 
-The outsider is a namespace of the lab without sdfrd (`x9`) running tests/support/outsider.py:
+The outsider is a namespace of the lab without sdfrd (`x9`) running sdfr/testing/outsider.py:
 it has no key and knows only the public wire format.  The lab's bridge is a hub (as a radio
 is), so it hears everything the robots send, multicast and unicast; it records it, and later
 replays or relays it, from its own address or from any address it likes.

@@ -1,6 +1,6 @@
 """An outsider on the medium against real daemons (needs root).
 
-The outsider is a namespace of the lab without sdfrd (`x9`), running tests/support/outsider.py: it
+The outsider is a namespace of the lab without sdfrd (`x9`), running sdfr/testing/outsider.py: it
 knows only the public wire format, captures what the robots multicast, and sends datagrams
 from its own address or from any address it likes.
 """
@@ -40,7 +40,7 @@ ROBOTS = ("r1", "r2", "r3")
 
 def outsider(lab: Lab, *args: str, name: str = "x9", timeout: float = 60) -> str:
     done = lab.exec(
-        name, [sys.executable, "-m", "tests.support.outsider", *args], cwd=ROOT, timeout=timeout
+        name, [sys.executable, "-m", "sdfr.testing.outsider", *args], cwd=ROOT, timeout=timeout
     )
     if done.returncode != 0:
         raise AssertionError(f"outsider {' '.join(args[:3])}: {done.stderr or done.stdout}")
@@ -368,7 +368,7 @@ def test_without_a_key_no_forged_datagram_locks_a_robot_out(
     # A boot id of 2**31-1 for r2 twice a second while r2 restarts: r2 is never locked out.
     forger = lab.popen(
         "x9",
-        [sys.executable, "-m", "tests.support.outsider", "send", "--spoof", r2, "--repeat", "10",
+        [sys.executable, "-m", "sdfr.testing.outsider", "send", "--spoof", r2, "--repeat", "10",
          "--interval", "0.5", wire.encode(wire.Alive(origin_of(lab, "r2", boot=2**31 - 1),
                                                      "http://x/", 30)).hex()],
         cwd=ROOT,
@@ -483,7 +483,7 @@ def test_no_reflection_a_spoofed_fetch_gets_the_victim_nothing_big(
         group=lab.robot("r1").ip, port=wire.DEFAULT_PORT,
     )  # fmt: skip
     listener = lab.popen(
-        "x8", [sys.executable, "-m", "tests.support.outsider", "listen", "--timeout", "4"],
+        "x8", [sys.executable, "-m", "sdfr.testing.outsider", "listen", "--timeout", "4"],
         cwd=ROOT,
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip

@@ -4,7 +4,7 @@ lists and says of its health while an attack runs.
 
 - `hub(lab)`: the lab's bridge floods every frame to every port, as a radio does: the outsider
   hears the robots' unicasts to each other, not only their multicasts.
-- `Outsider`: tests/support/outsider.py in a namespace of the lab (`send`, `record`, `replay`,
+- `Outsider`: sdfr/testing/outsider.py in a namespace of the lab (`send`, `record`, `replay`,
   `relay`), driven from the test.
 - `Tap`: tcpdump (netlab's `Capture`) on robots' interfaces; the datagrams each one saw, read
   back with `read_pcap`.
@@ -35,7 +35,7 @@ from netlab.capture import Capture, start_all, stop_all
 from netlab.lab import Lab
 from sdfr import wire
 from sdfr.client import Client
-from tests.support.outsider import udp_of
+from sdfr.testing.outsider import udp_of
 from tests.support.waiting import poll
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -161,7 +161,7 @@ class Recording:
 
 
 class Outsider:
-    """tests/support/outsider.py run in the lab's namespace `name`: no daemon, no key; it
+    """sdfr/testing/outsider.py run in the lab's namespace `name`: no daemon, no key; it
     knows only the public wire format."""
 
     def __init__(self, lab: Lab, name: str = "x9") -> None:
@@ -173,7 +173,7 @@ class Outsider:
         return self.lab.robot(self.name).ip
 
     def argv(self, *args: str) -> list[str]:
-        return [sys.executable, "-m", "tests.support.outsider", *args]
+        return [sys.executable, "-m", "sdfr.testing.outsider", *args]
 
     def run(self, *args: str, timeout: float = 60) -> str:
         done = self.lab.exec(self.name, self.argv(*args), cwd=ROOT, timeout=timeout)

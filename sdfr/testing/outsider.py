@@ -1,5 +1,5 @@
-"""An outsider on a lab's medium, for the security tests: run inside a namespace as
-``python -m tests.support.outsider COMMAND ...`` (netlab's ``lab.exec``/``lab.popen``).
+"""An outsider on a lab's medium, for the security tests and `bench.flood`: run inside a
+namespace as ``python -m sdfr.testing.outsider COMMAND ...`` (netlab's ``lab.exec``/``lab.popen``).
 
 It knows only the public wire format: it sends datagrams (hex on the command line) from its
 own address or from any address it likes (a raw socket writes the IP header itself), captures
@@ -16,8 +16,8 @@ as the victim of a reflection.
 - ``listen --port P --timeout S``: prints JSON ``{"datagrams": n, "bytes": b, "sources":
   {ip: [n, b]}}`` received (in all, and by source address).
 
-With ears: on a medium where every frame reaches every port (a radio; `tests.support.attacks.hub`
-makes the lab's bridge one), the outsider also hears the robots' unicasts to each other:
+With ears: on a medium where every frame reaches every port (a radio; the attack tests make the
+lab's bridge one), the outsider also hears the robots' unicasts to each other:
 
 - ``record --out FILE [--iface IF] [--seconds S]``: every UDP datagram to or from port 1900
   on the interface (the robots' multicasts and unicasts) as JSON lines ``{"t", "src", "dst",
