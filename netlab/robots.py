@@ -40,6 +40,7 @@ from typing import Any, ClassVar, Protocol
 from netlab import docker, kernel
 from netlab.errors import kernel_errors
 from sdfr import procfs
+from sdfr.config import option_flags
 
 RUNTIMES = ("namespace", "docker")
 #: Where a container robot's state dir is mounted (the image's volume).
@@ -113,15 +114,6 @@ class Started:
     helpers: list[subprocess.Popen[bytes]] = field(default_factory=list)
 
 
-def flags(options: Mapping[str, Any]) -> list[str]:
-    """sdfrd's command-line flags for `options` (beacon_interval=0.5 → --beacon-interval 0.5)."""
-    out: list[str] = []
-    for key, value in options.items():
-        if value is not None:
-            out += ["--" + key.replace("_", "-"), str(value)]
-    return out
-
-
 def _header(log: Path, argv: Sequence[str]) -> None:
     with open(log, "ab") as out:
         out.write(f"--- netlab: {' '.join(argv)}\n".encode())
@@ -161,7 +153,7 @@ class NamespaceKind(RobotKind):
         kernel.remove_ns(robot.ns)  # its veth goes with it
 
     def argv(self, options: Mapping[str, Any]) -> list[str]:
-        return [sys.executable, "-m", "sdfr.daemon", *flags(options)]
+        return [sys.executable, "-m", "sdfr.daemon", *option_flags(options)]
 
     def spawn(self, lab: str, robot: Robot, options: Mapping[str, Any]) -> Started:
         argv = self.argv(options)
@@ -283,7 +275,7 @@ class ContainerKind(RobotKind):
             image=self.image,
             labels=docker.labels(lab, robot.name, "sdfrd"),
             network=f"container:{robot.ns}",
-            argv=flags(opts),
+            argv=option_flags(opts),
             env={"SDFR_ROBOT_ID": str(opts.get("robot_id") or robot.name)},
             mounts={
                 str(host_state): (CONTAINER_STATE_DIR, False),

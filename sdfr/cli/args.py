@@ -14,7 +14,7 @@ from sdfr import version_text
 from sdfr.argparsing import HintingParser as Parser
 from sdfr.auth import MODES
 from sdfr.client import split_api
-from sdfr.config import DEFAULT_API, default_state_dir, option_help
+from sdfr.config import DEFAULT_API, default_state_dir, flag, option_help
 from sdfr.events import FAMILIES, KINDS, kind_filter
 from sdfr.model import AttrValue, attr_text
 
@@ -274,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     for name in WIFI_CONFIG_OPTIONS:
         c.add_argument(
-            "--" + name.replace("_", "-"),
+            flag(name),
             dest=name,
             default=argparse.SUPPRESS,
             metavar=name.upper(),

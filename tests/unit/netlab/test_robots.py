@@ -10,7 +10,8 @@ import pytest
 from netlab import docker
 from netlab.errors import NetlabError
 from netlab.lab import Lab
-from netlab.robots import ContainerKind, Robot, daemon_container, flags, kind_for
+from netlab.robots import ContainerKind, Robot, daemon_container, kind_for
+from sdfr.config import option_flags
 
 
 def robot(tmp_path: Path, runtime: str = "docker") -> Robot:
@@ -21,7 +22,7 @@ def robot(tmp_path: Path, runtime: str = "docker") -> Robot:
 
 
 def test_flags_are_sdfrd_options_by_name_without_the_unset_ones() -> None:
-    assert flags({"beacon_interval": 0.5, "robot_id": "r1", "key_file": None}) == [
+    assert option_flags({"beacon_interval": 0.5, "robot_id": "r1", "key_file": None}) == [
         "--beacon-interval", "0.5", "--robot-id", "r1",
     ]  # fmt: skip
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from sdfr import config
+from sdfr import options as config_options
 from sdfr.config import Config, build_parser, from_args, to_args
 from sdfr.daemon import supervisor
 from sdfr.errors import ConfigError
@@ -260,3 +261,45 @@ def test_the_layers_option(tmp_path: Path) -> None:
     assert from_args(["--config", str(conf), "--layers", "processes"]).layers == "processes"
     with pytest.raises(ConfigError, match="layers: must be processes or threads, got 'thread'"):
         from_args(["--layers", "thread"])
+
+
+def test_every_option_is_one_field_with_its_help_and_kind() -> None:
+    """The one place an option is defined: a Config field whose metadata the flags, the TOML
+    keys, `to_args` and netlab's checks read."""
+    for name, f in config.OPTIONS.items():
+        assert f.metadata["help"] and f.metadata["kind"] in config_options.OPTION_KINDS, name
+        assert config.flag(name) in build_parser().format_help()
+    assert [n for n, f in config.OPTIONS.items() if not f.metadata["passed"]] == ["wifi_secret"]
+
+
+def test_option_flags_give_lists_comma_separated_and_leave_out_the_unset() -> None:
+    opts = {"api_allowed_hosts": ("a", "b"), "key_file": None, "api_allowed_origins": ()}
+    assert config.option_flags(opts) == ["--api-allowed-hosts", "a,b"]
+    assert from_args(config.option_flags({"indicator_thresholds": [0.3, 0.6]})) == Config(
+        indicator_thresholds=(0.3, 0.6)
+    )
+
+
+@pytest.mark.parametrize(
+    ("options", "says"),
+    [
+        ({"mis_limit": 3}, "mis_limit: not an sdfrd option \\(did you mean 'miss_limit'\\?\\)"),
+        ({"miss_limit": "x"}, "miss_limit: expected int"),
+        ({"beacon_interval": 0}, "beacon_interval: must be 0.05-3600"),
+    ],
+)
+def test_options_config_names_a_typo_or_a_bad_value(options: dict[str, object], says: str) -> None:
+    with pytest.raises(ConfigError, match=says):
+        config.options_config(options)
+
+
+def test_options_config_takes_python_and_toml_values() -> None:
+    cfg = config.options_config(
+        {"miss_limit": 5, "state_dir": Path("/x"), "ping_interval": "0.5", "iface": None}
+    )
+    assert (cfg.miss_limit, cfg.state_dir, cfg.ping_interval, cfg.iface) == (
+        5,
+        Path("/x"),
+        0.5,
+        None,
+    )
