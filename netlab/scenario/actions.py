@@ -9,8 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from netlab.judging import fmt_set
 from netlab.mobility import RandomWaypoint, walk
-from netlab.observe import fmt_set
 from netlab.ranges import Pos
 from netlab.scenario.spec import StepError, pairs_of, select_groups
 from netlab.scenario.steps import (

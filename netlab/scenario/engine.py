@@ -17,11 +17,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from netlab import naming, procstat
-from netlab.analysis import count_updates, read_run
+from netlab.analysis import count_updates
 from netlab.docker import DEFAULT_IMAGE
 from netlab.errors import NetlabError, missing_extra
-from netlab.observe import Observer, Probe, Sample, TruthLog, TruthState, indicators_before
+from netlab.observe import Observer, Probe
+from netlab.pcap import read_run
 from netlab.ranges import UnitDisc
+from netlab.samples import Sample, indicators_before
 from netlab.scenario.actions import ACTIONS
 from netlab.scenario.backend import Backend, LabSpec
 from netlab.scenario.conditions import Agreement, Resources, Updates
@@ -32,6 +34,7 @@ from netlab.scenario.runfolder import new_run_dir, save_run, write_report
 from netlab.scenario.spec import Bad, Robots, Span, StepError, seconds
 from netlab.scenario.steps import Check, Start
 from netlab.scenario.topology import add_robots
+from netlab.truth import TruthLog, TruthState
 from sdfr.errors import ApiError
 
 if TYPE_CHECKING:

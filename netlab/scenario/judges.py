@@ -4,7 +4,8 @@ A *polled* condition has an evaluator (`@evaluates`): it looks at the fleet now 
 what is wrong (nothing: it holds); the engine polls it up to the check's deadline.  Any other
 condition has a judge (`@judges`), called once with the check's result to fill in: over the
 samples and /proc readings the run gathered, or (updates) left for the captures at the end.
-The pure comparisons live in `netlab.observe`; these functions gather their inputs.
+The pure comparisons live in `netlab.judging` and `netlab.samples`; these functions gather
+their inputs.
 """
 
 from __future__ import annotations
@@ -14,16 +15,15 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from netlab import procstat
 from netlab.analysis import natural_order
-from netlab.observe import (
+from netlab.judging import (
     address_problems,
-    agreement,
     expect_problems,
-    flaps,
     fmt_set,
     history_problems,
     indicator_problems,
     unreachable_problems,
 )
+from netlab.samples import agreement, flaps
 from netlab.scenario.conditions import (
     Agreement,
     Condition,

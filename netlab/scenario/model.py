@@ -10,8 +10,8 @@ from typing import Any
 
 from netlab import naming
 from netlab.errors import NetlabError
+from netlab.judging import fmt_set
 from netlab.mobility import HALL
-from netlab.observe import fmt_set
 from netlab.ranges import Pos
 from netlab.robots import RUNTIMES
 from netlab.scenario.spec import (

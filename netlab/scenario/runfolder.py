@@ -13,9 +13,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from netlab.analysis import read_run
 from netlab.errors import NetlabError
-from netlab.observe import Sample, TruthState, agreement, connectivity
+from netlab.pcap import read_run
+from netlab.samples import Sample, agreement, connectivity
+from netlab.truth import TruthState
 
 RUN_JSON = "run.json"
 RUN_SCHEMA = "netlab-scenario-run/1"

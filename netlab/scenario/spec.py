@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from netlab.errors import NetlabError
-from netlab.observe import fmt_set
+from netlab.judging import fmt_set
 
 #: Names a selector may use besides robots and groups.
 KEYWORDS = ("all", "running")
