@@ -332,11 +332,11 @@ def traffic(
 
 def by_type(folder: Path, names: Sequence[str], window: tuple[float, float]) -> dict[str, float]:
     """Sent bytes per message type, per robot, over 5 minutes (the SDfR dissector)."""
-    from netlab import analysis
+    from netlab import analysis, pcap
 
     recs = [
         r
-        for r in analysis.read_run([folder / f"{n}.pcap" for n in names])
+        for r in pcap.read_run([folder / f"{n}.pcap" for n in names])
         if window[0] <= r.time <= window[1]
     ]
     seconds = window[1] - window[0]

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import compile_sdfr
-from netlab import analysis, scenario
+from netlab import pcap, scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -63,8 +63,8 @@ def air(run_dir: Path, start: float, end: float, n: int) -> dict[str, Any]:
     """Bytes and datagrams on the air over [start, end], from the medium's capture."""
     recs = [
         r
-        for r in analysis.read_run([run_dir / "medium.pcap"])
-        if r.kind == analysis.SDFR and start <= r.time <= end
+        for r in pcap.read_run([run_dir / "medium.pcap"])
+        if r.kind == pcap.SDFR and start <= r.time <= end
     ]
     seconds = end - start
     owner = {r.src: r.robot for r in recs if r.robot is not None}

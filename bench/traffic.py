@@ -5,7 +5,7 @@ hall, all in range, each publishing two services; the paper's evaluation) run wi
 set to 10 s and their "stay" step lasting --minutes (5, the paper's run length). Every robot's
 interface is captured; the run's report counts, per robot, the SDfR datagrams it sent (TX) and
 those that reached its interface (RX), as UDP payload bytes and as whole Ethernet frames
-(`netlab.analysis.paper_measure`). These are scaled to exactly 5 minutes of the daemons
+(`netlab.paper.paper_measure`). These are scaled to exactly 5 minutes of the daemons
 running (1 kB = 1000 bytes). Not the paper's load (its robots published 30-70 services each
 and changed them): the paper's figure 6 is not set beside these, and the JSON says how the
 conditions differ (`paper_conditions`); `make bench-paper` measures under the paper's load.
@@ -34,7 +34,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from netlab import analysis, cleanup, manifest, naming, scenario
+from netlab import analysis, cleanup, manifest, naming, paper, pcap, scenario
 from netlab.errors import NetlabError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,20 +69,20 @@ def prepare(n: int, beacon: float, minutes: float) -> scenario.Scenario:
     return replace(sc, beacon=beacon, steps=tuple(steps))
 
 
-def robot_records(res: scenario.RunResult) -> tuple[list[analysis.Record], float | None]:
+def robot_records(res: scenario.RunResult) -> tuple[list[pcap.Record], float | None]:
     """The robots' captured records, and when the last robot capture stopped."""
     assert res.run_dir is not None
     infos = {
         label: info
-        for label, info in analysis.capture_infos(res.run_dir).items()
+        for label, info in pcap.capture_infos(res.run_dir).items()
         if info.role == "robot"
     }
-    recs = analysis.read_run([res.run_dir / f"{label}.pcap" for label in infos])
+    recs = pcap.read_run([res.run_dir / f"{label}.pcap" for label in infos])
     stops = [i.stopped for i in infos.values() if i.stopped is not None]
     return recs, max(stops, default=None)
 
 
-def live_window(res: scenario.RunResult, recs: list[analysis.Record], stop: float | None) -> Any:
+def live_window(res: scenario.RunResult, recs: list[pcap.Record], stop: float | None) -> Any:
     """The seconds SDfR ran under capture: from the first datagram any robot sent (daemons
     start a few seconds apart; on a busy machine the start step takes longer than that) to the
     captures' stop; the report's whole-run window if that cannot be told."""
@@ -171,7 +171,7 @@ def table(sizes: list[dict[str, Any]]) -> str:
 
     lines = [
         "kB per robot over 5 min (1 kB = 1000 B; UDP payload, whole frames in brackets);",
-        f"not the paper's load ({analysis.PAPER_CONDITIONS}, and changes): not comparable",
+        f"not the paper's load ({paper.PAPER_CONDITIONS}, and changes): not comparable",
         f"{'robots':>6}  {'TX kB':>17}  {'RX kB':>17}  status",
     ]
     for e in sizes:
@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "definition": definition,
         "paper_conditions": (
-            f"the paper's figure 6 was measured under its own load ({analysis.PAPER_CONDITIONS}, "
+            f"the paper's figure 6 was measured under its own load ({paper.PAPER_CONDITIONS}, "
             "robots changing their services); these fleets publish 2 services each and change "
             "none: not comparable, and not set beside it ('make bench-paper' is)"
         ),

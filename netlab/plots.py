@@ -18,13 +18,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from netlab import analysis
-from netlab.analysis import Record
+from netlab.paper import PAPER_CONDITIONS, PAPER_RX_KB_5MIN, PAPER_TX_KB_5MIN, RunConditions
+from netlab.pcap import Record
+from netlab.samples import AgreementSample, ConnectivitySample
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
-
-    from netlab.report import AgreementSample, ConnectivitySample, RunConditions
 
 __all__ = [
     "Timeline",
@@ -218,13 +218,13 @@ def bytes_per_robot(traffic: Mapping[str, Any], conditions: RunConditions) -> Fi
     differences = conditions.paper_differences()
     if differences:
         lines.append(
-            f"Not set beside the paper's figure 6 ({analysis.PAPER_CONDITIONS}): "
+            f"Not set beside the paper's figure 6 ({PAPER_CONDITIONS}): "
             f"this run had {'; '.join(differences)}"
         )
     else:
         tx = [float(robots[r]["per_5_min_kB"]["tx_payload"]) for r in names]
         rx = [float(robots[r]["per_5_min_kB"]["rx_payload"]) for r in names]
-        ptx, prx = analysis.PAPER_TX_KB_5MIN, analysis.PAPER_RX_KB_5MIN
+        ptx, prx = PAPER_TX_KB_5MIN, PAPER_RX_KB_5MIN
         lines.append(
             f"Over 5 min at this rate: TX {_span(tx, '.0f')} kB, RX {_span(rx, '.0f')} kB; "
             f"the paper's figure 6 under the same conditions: "

@@ -27,9 +27,10 @@ from pathlib import Path
 import pytest
 
 from netlab import Lab, naming
-from netlab.analysis import count_updates, read_run
+from netlab.analysis import count_updates
 from netlab.capture import Capture, start_all, stop_all
 from netlab.doctor import capabilities
+from netlab.pcap import read_run
 from sdfr.errors import ApiError
 from sdfr.model import AttrValue
 

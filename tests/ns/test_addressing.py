@@ -11,9 +11,10 @@ from typing import Any
 
 import pytest
 
-from netlab.analysis import arp_counts_by_sender, read_run
+from netlab.analysis import arp_counts_by_sender
 from netlab.capture import Capture
 from netlab.lab import Lab
+from netlab.pcap import read_run
 from sdfr.addressing import candidates
 from tests.support.waiting import poll
 

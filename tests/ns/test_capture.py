@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("scapy")
 
-from netlab import analysis, naming
+from netlab import analysis, naming, paper, pcap
 from netlab.capture import Capture, CaptureError, CaptureInfo, sidecar_path, start_all, stop_all
 from netlab.lab import Lab
 from netlab.report import write_report
@@ -88,7 +88,7 @@ def test_captures_of_three_daemons(fleet_factory: FleetFactory, tmp_path: Path) 
         assert info.started is not None and info.stopped is not None
         assert info.stats.captured is not None and info.stats.captured > 0
 
-    records = analysis.read_run(run)
+    records = pcap.read_run(run)
     names = {f"r{i}" for i in ROBOTS}
 
     # Every robot beacons: Alive datagrams of a few hundred bytes.
@@ -124,7 +124,7 @@ def test_captures_of_three_daemons(fleet_factory: FleetFactory, tmp_path: Path) 
         k: v.to_json() for k, v in robots_sent.items()
     }
 
-    m = analysis.paper_measure(records)
+    m = paper.paper_measure(records)
     assert set(m["robots"]) == names and m["duration_s"] > 1.0
     report = write_report(run, records=None, meta={"test": "ns"})
     assert report["traffic"]["robots"]["r2"]["tx"]["datagrams"] == tx["r2"].datagrams
@@ -151,7 +151,7 @@ def test_capture_is_listening_when_start_returns(
             assert res.returncode == 0, res.stderr
         assert cap.stats is not None
         assert cap.stats.captured == 1, f"{cap.stats}{environment(overflows)}"
-        (rec,) = analysis.read_pcap(path)
+        (rec,) = pcap.read_pcap(path)
         assert (rec.direction, rec.src, rec.msg_type) == ("rx", lab.robot("r1").ip, "Reject")
 
 

@@ -141,7 +141,7 @@ def behaviours(lab: Lab, names: list[str], svc: dict[str, set[str]]) -> None:
 
 
 def test_a_failed_check_says_who_missed_what_and_keeps_the_pcaps(lab: Lab) -> None:
-    from netlab.analysis import read_pcap
+    from netlab.pcap import read_pcap
 
     lab.add_robots(["r1", "r2"])
     lab.start_all(beacon_interval=0.3)
@@ -168,9 +168,10 @@ def test_answered_pings_keep_the_neighbour_reachable_without_arp_probes(lab: Lab
     peer's neighbour entry reachable instead of probing it with ARP every reachable time (a
     probe a lossy link can lose, and then unicasts wait on a new resolution). The robots'
     reachable time is cut to 1 s here so that probing would show within seconds."""
-    from netlab.analysis import arp_counts_by_sender, read_pcap
+    from netlab.analysis import arp_counts_by_sender
     from netlab.capture import Capture, start_all, stop_all
     from netlab.naming import ROBOT_IFACE
+    from netlab.pcap import read_pcap
 
     lab.add_robots(["r1", "r2"])
     for r in ("r1", "r2"):

@@ -30,7 +30,8 @@ from pathlib import Path
 import pytest
 
 from netlab import scenario
-from netlab.analysis import ping_delivery, read_run
+from netlab.analysis import ping_delivery
+from netlab.pcap import read_run
 from tests.support.fleets import discard, run_folder
 
 pytestmark = pytest.mark.root

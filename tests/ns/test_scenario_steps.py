@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from netlab import analysis, cli, kernel, naming
+from netlab import cli, kernel, naming, pcap
 from netlab.doctor import capabilities
 from netlab.lab import Lab
 from netlab.scenario import (
@@ -201,7 +201,7 @@ def test_a_failed_wait_names_the_robot_stops_and_keeps_the_pcaps(tmp_path: Path)
     (check,) = result.checks
     assert "r1 lists {r2, r3} but should list {r2}" in check.detail
     folder = tmp_path / "fail"
-    records = analysis.read_run(folder)
+    records = pcap.read_run(folder)
     assert {r.capture for r in records} == {"r1", "r2", "r3"}
     assert not any(r.msg_type == "Byebye" for r in records)  # r1 was not killed... nor stopped
     assert (folder / "logs" / "r1.log").exists()
@@ -334,8 +334,8 @@ def test_netlab_capture_on_a_lab_brought_up(
         assert cli.main(["capture", name, "r9", "--out", str(air), "--duration", "1"]) == 1
         text = capsys.readouterr()
         assert "no robot 'r9'" in text.err and "frames captured" in text.out
-        mine = list(analysis.read_pcap(out))
+        mine = list(pcap.read_pcap(out))
         assert {r.robot for r in mine if r.direction == "tx" and r.kind == "sdfr"} == {"r1"}
-        assert {r.robot for r in analysis.read_pcap(air) if r.kind == "sdfr"} == {"r1", "r2"}
+        assert {r.robot for r in pcap.read_pcap(air) if r.kind == "sdfr"} == {"r1", "r2"}
     finally:
         assert cli.main(["down", name, "--cleanup"]) == 0

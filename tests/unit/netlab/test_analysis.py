@@ -20,8 +20,7 @@ from scapy.layers.inet import IP, UDP
 from scapy.layers.l2 import ARP, Ether
 from scapy.utils import wrpcap
 
-from netlab import analysis
-from netlab.analysis import PcapError, Record
+from netlab import analysis, paper, pcap
 from netlab.capture import (
     Capture,
     CaptureError,
@@ -29,7 +28,9 @@ from netlab.capture import (
     _parse_stats,
     sidecar_path,
 )
-from netlab.report import AgreementSample, ConnectivitySample, write_report
+from netlab.pcap import PcapError, Record
+from netlab.report import write_report
+from netlab.samples import AgreementSample, ConnectivitySample
 from netlab.sdfr_layer import SDfR, describe
 from sdfr import auth, wire
 from sdfr.model import Service
@@ -276,7 +277,7 @@ def test_dissection_never_raises() -> None:
 
 
 def test_records_carry_direction_sizes_and_sdfr_fields(run: dict[str, Any]) -> None:
-    recs = list(analysis.read_pcap(run["paths"]["r1"]))
+    recs = list(pcap.read_pcap(run["paths"]["r1"]))
     assert {r.capture for r in recs} == {"r1"}
     sdfr_recs = [r for r in recs if r.kind == "sdfr"]
     alive = next(r for r in sdfr_recs if r.msg_type == "Alive" and r.robot == "r1")
@@ -294,16 +295,16 @@ def test_records_carry_direction_sizes_and_sdfr_fields(run: dict[str, Any]) -> N
     arp = [r for r in recs if r.kind == "arp"]
     assert len(arp) == 4 and arp[0].msg_type == "ARP"
     # the medium has no direction
-    air = list(analysis.read_pcap(run["paths"]["air"]))
+    air = list(pcap.read_pcap(run["paths"]["air"]))
     assert {r.direction for r in air} == {""}
     # overrides win over the sidecar
-    relabelled = list(analysis.read_pcap(run["paths"]["r1"], label="x", own_mac=mac(2)))
+    relabelled = list(pcap.read_pcap(run["paths"]["r1"], label="x", own_mac=mac(2)))
     assert {r.capture for r in relabelled} == {"x"}
     assert next(r for r in relabelled if r.robot == "r2").direction == "tx"
 
 
 def test_sent_and_received_per_robot(run: dict[str, Any]) -> None:
-    recs = analysis.read_run(run["dir"])
+    recs = pcap.read_run(run["dir"])
     assert [r.time for r in recs] == sorted(r.time for r in recs)
     expect = run["expect"]
     sent = analysis.sent_per_robot(recs)
@@ -313,7 +314,7 @@ def test_sent_and_received_per_robot(run: dict[str, Any]) -> None:
     got = {k: [v.datagrams, v.payload_bytes, v.frame_bytes] for k, v in received.items()}
     assert got == expect["rx"]
     # the medium alone gives the same TX
-    air = list(analysis.read_pcap(run["paths"]["air"]))
+    air = list(pcap.read_pcap(run["paths"]["air"]))
     medium_sent = {k: v.to_json() for k, v in analysis.sent_per_robot(air).items()}
     assert medium_sent == {k: v.to_json() for k, v in sent.items()}
     assert analysis.capture_owners(recs) == {"r1": "r1", "r2": "r2", "r3": "r3"}
@@ -323,7 +324,7 @@ def test_sent_and_received_per_robot(run: dict[str, Any]) -> None:
 
 
 def test_per_type_rejects_and_updates(run: dict[str, Any]) -> None:
-    recs = analysis.read_run(run["dir"])
+    recs = pcap.read_run(run["dir"])
     types = {k: v.datagrams for k, v in analysis.per_type(recs).items()}
     assert types == {
         "Alive": 18,
@@ -347,11 +348,11 @@ def test_per_type_rejects_and_updates(run: dict[str, Any]) -> None:
     assert analysis.count_updates(recs, until=T0 + 1.2) == 0
     assert analysis.count_updates(recs, robot="r2") == 0
     # each datagram once, whichever captures are given
-    assert analysis.count_updates(analysis.read_run(run["paths"]["air"])) == PARTS
+    assert analysis.count_updates(pcap.read_run(run["paths"]["air"])) == PARTS
 
 
 def test_per_second_series(run: dict[str, Any]) -> None:
-    recs = analysis.read_run(run["dir"])
+    recs = pcap.read_run(run["dir"])
     by_type = analysis.per_second(recs, by="type", start=T0)
     assert by_type.step == 1.0 and by_type.bins == 3 and by_type.times == [0.0, 1.0, 2.0]
     assert by_type.values["Alive"] == [6.0, 6.0, 6.0]
@@ -371,8 +372,8 @@ def test_per_second_series(run: dict[str, Any]) -> None:
 
 
 def test_paper_measure_states_both_sizes(run: dict[str, Any]) -> None:
-    recs = analysis.read_run(run["dir"])
-    m = analysis.paper_measure(recs, duration=3.0)
+    recs = pcap.read_run(run["dir"])
+    m = paper.paper_measure(recs, duration=3.0)
     r1 = m["robots"]["r1"]
     tx = run["expect"]["tx"]["r1"]
     assert r1["tx"] == {"datagrams": tx[0], "payload_bytes": tx[1], "frame_bytes": tx[2]}
@@ -385,7 +386,7 @@ def test_paper_measure_states_both_sizes(run: dict[str, Any]) -> None:
 
 
 def test_arp_counts(run: dict[str, Any]) -> None:
-    recs = analysis.read_run(run["dir"])
+    recs = pcap.read_run(run["dir"])
     counts = analysis.arp_counts(recs)
     assert counts.to_json() == {"probes": 1, "announcements": 1, "requests": 1, "replies": 1}
     per = analysis.arp_counts_by_sender(recs)
@@ -397,7 +398,7 @@ def test_records_without_metadata_count_once_per_capture(tmp_path: Path) -> None
     data = wire.encode(wire.Alive(origin(1), location(1), 30))
     path = tmp_path / "bare.pcap"
     wrpcap(str(path), [frame(1, None, data, T0 + k) for k in range(4)])
-    recs = analysis.read_run(path)
+    recs = pcap.read_run(path)
     assert {r.direction for r in recs} == {""} and {r.capture for r in recs} == {"bare"}
     assert analysis.sent_per_robot(recs)["r1"].datagrams == 4
     assert analysis.received_per_robot(recs) == {}
@@ -406,31 +407,22 @@ def test_records_without_metadata_count_once_per_capture(tmp_path: Path) -> None
 def test_unreadable_pcaps(tmp_path: Path) -> None:
     empty = tmp_path / "empty.pcap"
     empty.write_bytes(b"")
-    assert list(analysis.read_pcap(empty)) == []
+    assert list(pcap.read_pcap(empty)) == []
     bogus = tmp_path / "bogus.pcap"
     bogus.write_bytes(b"this is not a pcap file at all")
     with pytest.raises(PcapError, match="not a pcap"):
-        list(analysis.read_pcap(bogus))
+        list(pcap.read_pcap(bogus))
     with pytest.raises(PcapError, match="cannot read"):
-        list(analysis.read_pcap(tmp_path / "missing.pcap"))
+        list(pcap.read_pcap(tmp_path / "missing.pcap"))
     # a header with no packets (tcpdump stopped before anything arrived)
     header_only = tmp_path / "header.pcap"
     header_only.write_bytes(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 2048, 1))
-    assert list(analysis.read_pcap(header_only)) == []
-
-
-def test_neighbour_agreement() -> None:
-    truth = {"a": {"b"}, "b": {"a"}, "c": set()}
-    assert analysis.neighbour_agreement(truth, {"a": ["b"], "b": ["a"], "c": []}) == 1.0
-    # a misses b, c wrongly lists a: 2 of 6 ordered pairs disagree
-    got = analysis.neighbour_agreement(truth, {"a": [], "b": ["a"], "c": ["a"]})
-    assert got == pytest.approx(4 / 6)
-    assert analysis.neighbour_agreement({"a": set()}, {}) == 1.0
+    assert list(pcap.read_pcap(header_only)) == []
 
 
 def test_importing_netlab_modules_does_not_import_scapy_or_matplotlib() -> None:
     code = (
-        "import sys, netlab.analysis, netlab.report, netlab.capture; "
+        "import sys, netlab.analysis, netlab.pcap, netlab.paper, netlab.report, netlab.capture; "
         "print(sorted(m for m in ('scapy', 'matplotlib') if m in sys.modules))"
     )
     out = subprocess.run(
@@ -447,7 +439,7 @@ def is_png(path: Path) -> bool:
 
 
 def test_report_writes_json_and_plots(run: dict[str, Any]) -> None:
-    recs = analysis.read_run(run["dir"])
+    recs = pcap.read_run(run["dir"])
     conn = [
         ConnectivitySample(
             T0 + k,

@@ -12,16 +12,8 @@ from pathlib import Path
 import pytest
 
 from netlab import procstat
-from netlab.observe import (
-    PeerEntry,
-    Sample,
-    TruthState,
-    View,
-    flaps,
-    history_problems,
-    indicator_problems,
-    indicators_before,
-)
+from netlab.judging import PeerEntry, View, history_problems, indicator_problems
+from netlab.samples import Sample, flaps, indicators_before
 from netlab.scenario import (
     Backend,
     Check,
@@ -42,6 +34,7 @@ from netlab.scenario import (
     loads,
     run,
 )
+from netlab.truth import TruthState
 from tests.support.fakelab import BEACON, FakeLab, quiet
 
 ALL = frozenset({("r1", "r2"), ("r2", "r1")})

@@ -19,8 +19,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
 
 from netlab import plots
-from netlab.analysis import Record
-from netlab.report import AgreementSample, ConnectivitySample, write_report
+from netlab.pcap import Record
+from netlab.report import write_report
+from netlab.samples import AgreementSample, ConnectivitySample
 
 T0 = 1_800_000_000.0
 ROBOTS = [f"r{i}" for i in range(1, 7)]
@@ -164,7 +165,7 @@ def test_datagram_bins_are_whole_beacons(beacon: float, duration: float) -> None
 
 
 def test_the_beacon_is_read_from_the_run_or_else_from_its_alive_datagrams() -> None:
-    from netlab.report import beacon_period
+    from netlab.paper import beacon_period
 
     assert beacon_period({"beacon_interval_s": 2.0}, []) == 2.0
     # sdfrd's gaps are 0.9 to 1 times its period (`CoreConfig.jitter`).
@@ -201,7 +202,7 @@ def footer(fig: Any) -> str:
 
 
 def test_a_run_unlike_the_papers_is_not_set_beside_its_figures() -> None:
-    from netlab.report import RunConditions
+    from netlab.paper import RunConditions
 
     cond = RunConditions(robots=3, duration_s=6.8, beacon_s=1.0, services_per_robot=(1, 1))
     assert cond.paper_differences()
@@ -214,7 +215,7 @@ def test_a_run_unlike_the_papers_is_not_set_beside_its_figures() -> None:
 
 
 def test_a_run_under_the_papers_conditions_is_set_beside_its_figures() -> None:
-    from netlab.report import RunConditions
+    from netlab.paper import RunConditions
 
     cond = RunConditions(robots=4, duration_s=300.0, beacon_s=10.0, services_per_robot=(30, 70))
     assert cond.paper_differences() == []
@@ -224,7 +225,7 @@ def test_a_run_under_the_papers_conditions_is_set_beside_its_figures() -> None:
 
 
 def test_equal_figures_print_one_value_not_a_range() -> None:
-    from netlab.report import RunConditions
+    from netlab.paper import RunConditions
 
     cond = RunConditions(robots=3, duration_s=10.0, beacon_s=1.0, services_per_robot=(2, 2))
     text = footer(plots.bytes_per_robot(traffic([3.82, 3.82, 3.82], 10.0), cond))
@@ -243,7 +244,7 @@ def test_equal_figures_print_one_value_not_a_range() -> None:
     ],
 )
 def test_each_difference_from_the_paper_is_named(change: dict[str, Any], why: str) -> None:
-    from netlab.report import RunConditions
+    from netlab.paper import RunConditions
 
     base = {"robots": 6, "duration_s": 300.0, "beacon_s": 10.0, "services_per_robot": (70, 70)}
     differences = RunConditions(**{**base, **change}).paper_differences()
@@ -259,7 +260,7 @@ def update(t: float, robot: str, version: int, part: int, parts: int, services: 
 
 
 def test_services_per_robot_are_counted_from_the_latest_update_of_each() -> None:
-    from netlab.report import RunConditions, run_conditions
+    from netlab.paper import RunConditions, run_conditions
 
     recs = [
         update(T0 + 1, "r1", 1, 0, 1, 3),

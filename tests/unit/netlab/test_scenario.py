@@ -13,18 +13,16 @@ from typing import Any
 import pytest
 
 from netlab import cli
-from netlab.observe import (
+from netlab.judging import (
     PeerEntry,
-    Sample,
-    TruthState,
     View,
     address_problems,
-    agreement,
     expect_problems,
     history_problems,
     unreachable_problems,
 )
 from netlab.ranges import UnitDisc
+from netlab.samples import Sample, agreement
 from netlab.scenario import (
     Agreement,
     Backend,
@@ -63,6 +61,7 @@ from netlab.scenario import (
     rebuild_report,
     run,
 )
+from netlab.truth import TruthState
 from sdfr.addressing import candidates
 from tests.support.fakelab import BEACON, FakeLab, quiet
 

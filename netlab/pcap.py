@@ -1,0 +1,257 @@
+"""Captured frames as records: `read_pcap` streams a pcap (scapy's `PcapReader`, with the
+`netlab.sdfr_layer.SDfR` layer) into one `Record` per SDfR datagram, ARP frame or other frame.
+
+Direction.  A robot's capture (its ``eth0``) holds what it sent and what reached it: a frame
+is ``tx`` when its source MAC is the interface's own (from the ``.json`` that
+`netlab.capture.Capture` writes next to the pcap), else ``rx``.  A medium capture (the bridge)
+sees every frame put on the air once, with no direction.
+
+Sizes.  ``payload_len`` is the UDP payload (the SDfR datagram, as the daemon sees it);
+``frame_len`` the whole Ethernet frame as captured (Ethernet + IP + UDP headers + payload, no
+preamble or FCS).
+
+Times are the capture's timestamps: UNIX seconds (``time.time()`` clock).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from netlab.capture import CaptureInfo
+from netlab.errors import NetlabError
+
+__all__ = [
+    "ARP",
+    "OTHER",
+    "RX",
+    "SDFR",
+    "TX",
+    "PcapError",
+    "Record",
+    "capture_infos",
+    "read_pcap",
+    "read_run",
+]
+
+SDFR = "sdfr"
+ARP = "arp"
+OTHER = "other"
+TX = "tx"
+RX = "rx"
+
+
+class PcapError(NetlabError, ValueError):
+    """A file that is not a readable pcap."""
+
+
+@dataclass(frozen=True, slots=True)
+class Record:
+    """One captured frame: an SDfR datagram (kind "sdfr"), an ARP frame ("arp") or other."""
+
+    time: float
+    capture: str  # label of the capture it comes from
+    direction: str  # "tx", "rx", or "" (medium capture, or direction unknown)
+    kind: str  # "sdfr", "arp" or "other"
+    src_mac: str
+    dst_mac: str
+    src: str  # IP source; for ARP the sender protocol address
+    dst: str  # IP destination; for ARP the target protocol address
+    multicast: bool  # IP destination is a multicast group
+    frame_len: int  # the whole frame on the wire (pcap original length)
+    payload_len: int = 0  # UDP payload (0 for ARP)
+    sport: int | None = None
+    dport: int | None = None
+    msg_type: str = ""  # sdfr_layer.MSG_TYPES for "sdfr"; "ARP" for "arp"
+    robot: str | None = None  # the sender's robot id (SDfR header)
+    fleet: int | None = None
+    boot: int | None = None
+    version: int | None = None
+    part: int | None = None  # 0-based
+    parts: int | None = None
+    services: int | None = None
+    seq: int | None = None  # Discovery/Response: a unicast ping and its reply
+    ping: int | None = None  # Response: the sender's own ping riding on its reply
+    reason: str | None = None  # Reject: why
+    arp_op: int | None = None  # 1 request, 2 reply
+
+    @property
+    def type_key(self) -> str:
+        """The message type, pings apart: "Ping" (Discovery with seq), "Ping reply"."""
+        if self.seq is not None:
+            if self.msg_type == "Discovery":
+                return "Ping"
+            if self.msg_type == "Response":
+                return "Ping reply"
+        return self.msg_type
+
+    def to_json(self) -> dict[str, object]:
+        return asdict(self)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading pcaps
+
+
+def read_pcap(
+    path: Path,
+    *,
+    label: str | None = None,
+    own_mac: str | None = None,
+    role: str | None = None,
+) -> Iterator[Record]:
+    """Records of the SDfR datagrams, ARP and other frames in one pcap, in file order.
+
+    `label`, `own_mac` and `role` ("robot" or "medium") default to what ``PATH.json`` (written
+    by `netlab.capture.Capture`) says, else the file name without extension, no MAC, "robot".
+    Without a MAC, or for the medium, records have no direction.
+    """
+    from scapy.error import Scapy_Exception
+    from scapy.utils import PcapReader
+
+    import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
+
+    path = Path(path)
+    meta = _sidecar(path)
+    label = label or str(meta.get("label") or path.stem)
+    own_mac = (own_mac or meta.get("mac") or "").lower() or None
+    role = role or str(meta.get("role") or "robot")
+    try:
+        if path.stat().st_size == 0:  # killed before tcpdump flushed the file header
+            return
+    except OSError as exc:
+        raise PcapError(f"cannot read {path}: {exc}") from None
+    try:
+        reader = PcapReader(str(path))
+    except (Scapy_Exception, OSError) as exc:
+        raise PcapError(f"{path} is not a pcap file: {exc}") from None
+    with reader:
+        for pkt in reader:
+            rec = _record(pkt, label, own_mac if role != "medium" else None)
+            if rec is not None:
+                yield rec
+
+
+def read_run(
+    sources: Path | Iterable[Path],
+) -> list[Record]:
+    """Records of every ``*.pcap`` in a directory (or of the given pcaps), by time."""
+    if isinstance(sources, Path):
+        paths = sorted(sources.glob("*.pcap")) if sources.is_dir() else [sources]
+    else:
+        paths = [Path(p) for p in sources]
+    out: list[Record] = []
+    for path in paths:
+        out.extend(read_pcap(path))
+    out.sort(key=lambda r: r.time)
+    return out
+
+
+def capture_infos(run_dir: Path) -> dict[str, CaptureInfo]:
+    """What the ``*.pcap.json`` files in `run_dir` say about its captures, by label."""
+    out: dict[str, CaptureInfo] = {}
+    for pcap in sorted(Path(run_dir).glob("*.pcap")):
+        meta = _sidecar(pcap)
+        if meta:
+            info = CaptureInfo.from_json(meta)
+            out[info.label or pcap.stem] = info
+    return out
+
+
+def _sidecar(path: Path) -> dict[str, Any]:
+    side = path.with_name(path.name + ".json")
+    try:
+        obj = json.loads(side.read_text())
+    except (OSError, ValueError):
+        return {}
+    return obj if isinstance(obj, dict) else {}
+
+
+def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
+    from scapy.layers.inet import IP, UDP
+    from scapy.layers.inet6 import IPv6
+    from scapy.layers.l2 import ARP as ArpLayer
+
+    from netlab.sdfr_layer import SDfR, describe
+
+    t = float(pkt.time)
+    frame_len = int(pkt.wirelen or len(pkt))
+    src_mac = str(getattr(pkt, "src", "") or "").lower() if _is_ether(pkt) else ""
+    dst_mac = str(getattr(pkt, "dst", "") or "").lower() if _is_ether(pkt) else ""
+    direction = "" if own_mac is None or not src_mac else TX if src_mac == own_mac else RX
+
+    def make(**kw: Any) -> Record:
+        return Record(
+            time=t,
+            capture=label,
+            direction=direction,
+            src_mac=src_mac,
+            dst_mac=dst_mac,
+            frame_len=frame_len,
+            **kw,
+        )
+
+    if ArpLayer in pkt:
+        arp = pkt[ArpLayer]
+        return make(
+            kind=ARP,
+            src=str(arp.psrc),
+            dst=str(arp.pdst),
+            multicast=False,
+            msg_type="ARP",
+            arp_op=int(arp.op),
+        )
+    ip = pkt.getlayer(IP) or pkt.getlayer(IPv6)
+    if ip is None:
+        return make(kind=OTHER, src="", dst="", multicast=False)
+    src, dst = str(ip.src), str(ip.dst)
+    udp = pkt.getlayer(UDP)
+    if udp is None or 1900 not in (udp.sport, udp.dport):
+        return make(kind=OTHER, src=src, dst=dst, multicast=_multicast(dst))
+    layer = udp.getlayer(SDfR)
+    if layer is not None:
+        data: bytes = layer.load
+        view: Mapping[str, Any] = layer.fields
+    else:  # e.g. an empty payload, or a first fragment
+        data = bytes(udp.payload)
+        view = describe(data)
+    size = int(udp.len) - 8 if udp.len is not None and int(udp.len) >= 8 else len(data)
+    return make(
+        kind=SDFR,
+        src=src,
+        dst=dst,
+        multicast=_multicast(dst),
+        payload_len=size,
+        sport=int(udp.sport),
+        dport=int(udp.dport),
+        msg_type=str(view.get("msg_type") or "Reject"),
+        robot=view.get("robot"),
+        fleet=view.get("fleet"),
+        boot=view.get("boot"),
+        version=view.get("version"),
+        part=view.get("part"),
+        parts=view.get("parts"),
+        services=view.get("services"),
+        seq=view.get("seq"),
+        ping=view.get("ping"),
+        reason=view.get("reason"),
+    )
+
+
+def _is_ether(pkt: Any) -> bool:
+    from scapy.layers.l2 import Ether
+
+    return isinstance(pkt, Ether)
+
+
+@lru_cache(maxsize=1024)
+def _multicast(addr: str) -> bool:
+    try:
+        return ipaddress.ip_address(addr).is_multicast
+    except ValueError:
+        return False
