@@ -13,9 +13,9 @@ from typing import ClassVar
 
 from netlab.scenario.spec import (
     Bad,
-    Ctx,
     Duration,
     Robots,
+    Selectors,
     Span,
     boolean,
     bounded,
@@ -39,7 +39,7 @@ class Condition:
     def describe(self) -> str:
         return self.kind
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         pass
 
 
@@ -64,13 +64,13 @@ class Lists(Condition):
         who = sel_text(self.robots, "all running robots")
         return f"{who} list each other{tail}"
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         if self.robots is not None and self.groups is not None:
             raise Bad("give robots (one group) or groups (several), not both")
         if self.robots is not None:
-            check_field("robots", lambda: ctx.robots(self.robots or ()))
+            check_field("robots", lambda: selectors.robots(self.robots or ()))
         if self.groups is not None:
-            check_field("groups", lambda: select_groups(ctx, self.groups or ()))
+            check_field("groups", lambda: select_groups(selectors, self.groups or ()))
         check_field("services", lambda: boolean(self.services))
         check_field("exact", lambda: boolean(self.exact))
 
@@ -88,8 +88,8 @@ class Medium(Condition):
         who = sel_text(self.robots)
         return f"{who} list exactly whom the medium links them to"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         check_field("services", lambda: boolean(self.services))
 
 
@@ -105,10 +105,10 @@ class Unreachable(Condition):
     def describe(self) -> str:
         return f"{sel_text(self.robots)} unreachable on {sel_text(self.on, 'every peer')}"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         if self.on is not None:
-            check_field("on", lambda: ctx.robots(self.on or ()))
+            check_field("on", lambda: selectors.robots(self.on or ()))
 
 
 @dataclass(frozen=True)
@@ -131,10 +131,10 @@ class InHistory(Condition):
             state + fell
         )
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         if self.on is not None:
-            check_field("on", lambda: ctx.robots(self.on or ()))
+            check_field("on", lambda: selectors.robots(self.on or ()))
         if self.reachable is not None:
             check_field("reachable", lambda: boolean(self.reachable))
         if self.indicator_below is not None:
@@ -153,8 +153,8 @@ class DistinctAddresses(Condition):
     def describe(self) -> str:
         return f"{sel_text(self.robots)}: every robot at its own address"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
 
 
 MEASURES = ("pairs", "samples")
@@ -186,7 +186,7 @@ class Agreement(Condition):
             f"(lag {Duration.of(self.lag)}{loss})"
         )
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         bounded(self.at_least, "at_least", 0.0, 1.0)
         check_field("lag", lambda: Duration.of(self.lag))
         if self.loss_lag is not None:
@@ -210,7 +210,7 @@ class Updates(Condition):
     def describe(self) -> str:
         return f"at most {self.at_most} Update datagrams since {self.after or 'the last step'}"
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         whole(self.at_most, "at_most")
 
 
@@ -232,7 +232,7 @@ class Flaps(Condition):
         over = f" over {self.over}" if self.over else ""
         return f"no peer flaps out more than {self.at_most} per {Duration.of(self.per)}{over}"
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         whole(self.at_most, "at_most")
         check_field("per", lambda: Duration.of(self.per))
 
@@ -252,8 +252,8 @@ class Indicator(Condition):
             "the medium's round-trip delivery"
         )
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         bounded(self.tolerance, "tolerance", 0.0, 1.0)
 
 
@@ -280,7 +280,7 @@ class Resources(Condition):
         over = f" over {self.over}" if self.over else ""
         return f"CPU and memory per daemon{over}" + (f": {', '.join(limits)}" if limits else "")
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         if self.cpu_at_most is not None:
             bounded(self.cpu_at_most, "cpu_at_most", 0.0)
         if self.pss_at_most is not None:

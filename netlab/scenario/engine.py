@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from netlab import naming, procstat
 from netlab.analysis import count_updates
@@ -23,18 +23,19 @@ from netlab.errors import NetlabError, missing_extra
 from netlab.observe import Observer, Probe
 from netlab.pcap import read_run
 from netlab.ranges import UnitDisc
-from netlab.samples import Sample, indicators_before
+from netlab.samples import Sample
 from netlab.scenario.actions import ACTIONS
 from netlab.scenario.backend import Backend, LabSpec
-from netlab.scenario.conditions import Agreement, Resources, Updates
+from netlab.scenario.conditions import Agreement, Resources
+from netlab.scenario.context import CheckContext, Fleet, History, StepContext
 from netlab.scenario.judges import AFTER_POLL, EVALUATORS, JUDGES
 from netlab.scenario.model import Scenario, reference, step_ref
 from netlab.scenario.results import CheckResult, RunResult
 from netlab.scenario.runfolder import new_run_dir, save_run, write_report
-from netlab.scenario.spec import Bad, Robots, Span, StepError, seconds
-from netlab.scenario.steps import Check, Start
+from netlab.scenario.spec import Bad, Span, seconds
+from netlab.scenario.steps import Check
 from netlab.scenario.topology import add_robots
-from netlab.truth import TruthLog, TruthState
+from netlab.truth import TruthLog
 from sdfr.errors import ApiError
 
 if TYPE_CHECKING:
@@ -46,10 +47,8 @@ PRODUCT_BEACON = 10.0
 class Run:
     """One run of a scenario: the lab, the captures, the observer, the timeline, the report.
 
-    What the step and condition functions use: `lab`, `sc`, `ctx`, `clock`, `quick`, `probe`,
-    `observer`, `truth`, `running` (robots whose daemon runs, in start order), `services`
-    (robot -> service name -> id this run published), `windows` (step -> wall-clock start,
-    end), `usage`, `pending`, and the helpers below.
+    Actions and judges see none of it: each gets a `StepContext` or `CheckContext`
+    (`netlab.scenario.context`) with the parts it uses.
     """
 
     def __init__(
@@ -62,7 +61,6 @@ class Run:
         say: Callable[[str], None],
     ) -> None:
         self.sc = sc
-        self.ctx = sc._ctx()
         self.backend = backend
         self.clock = backend.clock
         self.run_dir = run_dir
@@ -70,42 +68,21 @@ class Run:
         self._say = say
         self.lab = backend.make_lab(spec)
         self.truth = TruthLog(clock=self.clock.time)
-        self.running: list[str] = []
-        self.services: dict[str, dict[str, str]] = {n: {} for n in sc.names}
-        self.windows: dict[int, tuple[float, float]] = {}
+        self.fleet = Fleet(sc.selectors(), self.lab, self.truth)
+        self.history = History(sc.steps, action_wall=self.clock.time())
         self.checks: list[CheckResult] = []
-        self.pending: list[tuple[CheckResult, Updates, float, float]] = []
         self.error: str | None = None
         self.t0 = self.clock.monotonic()
         self.event = self.t0  # end of the last action step
-        self._probe: Probe | None = None
-        self._observer: Observer | None = None
         self.samples: list[Sample] = []
         self.captured = False
         self.wall = (self.clock.time(), self.clock.time())
-        self.action_wall = self.clock.time()  # start of the last action step (wall clock)
-        self._baseline: tuple[float, dict[str, dict[str, float]]] | None = None
-        #: Steps whose window a resources check measures -> readings at its start and end.
+        #: Steps whose window a resources check measures.
         self.measured = {
             reference(sc.steps, i, s.condition.over)
             for i, s in enumerate(sc.steps, 1)
             if isinstance(s, Check) and isinstance(s.condition, Resources)
         }
-        self.usage: dict[int, tuple[dict[str, procstat.Usage], dict[str, procstat.Usage]]] = {}
-
-    # -- what steps and judges use -------------------------------------------------------------
-
-    @property
-    def probe(self) -> Probe:
-        if self._probe is None:
-            raise AssertionError("the run's probe is made when the lab is up")
-        return self._probe
-
-    @property
-    def observer(self) -> Observer:
-        if self._observer is None:
-            raise AssertionError("the run's observer is made when the lab is up")
-        return self._observer
 
     def say(self, text: str) -> None:
         self._say(f"  {self.elapsed():7.2f} s  {text}")
@@ -117,57 +94,14 @@ class Run:
     def seconds(self, span: Span) -> float:
         return seconds(span, self.sc.beacon)
 
-    def names(self, sel: Robots) -> tuple[str, ...]:
-        return self.ctx.robots(sel, self.running)
-
-    def running_of(self, sel: Robots | None) -> list[str]:
-        """The robots `sel` names whose daemon runs (None: every running robot)."""
-        if sel is None:
-            return list(self.running)
-        running = set(self.running)
-        return [r for r in self.names(sel) if r in running]
-
-    def options(self, step: Start | None = None) -> dict[str, Any]:
-        """sdfrd's options for a start: the scenario's beacon and [sdfrd], the step's own."""
-        return {
-            "beacon_interval": self.sc.beacon,
-            **self.sc.sdfrd,
-            **(step.options if step is not None else {}),
-        }
-
-    def text(self, names: Sequence[str]) -> str:
-        if len(names) > 2 and set(names) == set(self.sc.names):
-            return f"all {len(names)}"
-        return ", ".join(names)
-
-    def record_truth(self) -> TruthState:
-        # A robot's own link loss can add up to 100 %: no datagram passes, so no link.
-        links = [pair for pair, loss in self.lab.links().items() if loss < 100.0]
-        return self.truth.record(links, self.running)
-
-    def gone(self, name: str) -> None:
-        if name in self.running:
-            self.running.remove(name)
-        self.record_truth()
-
-    def need_running(self, name: str, what: str) -> None:
-        if name not in self.running:
-            raise StepError(f"cannot {what} on {name}: its sdfrd is not running")
-
-    def indicators_before_last_step(self) -> dict[str, dict[str, float]]:
-        """Each robot's indicators in the last samples before the last action step began,
-        worked out once per step (a polled check asks again and again)."""
-        if self._baseline is None or self._baseline[0] != self.action_wall:
-            seen = indicators_before(self.observer.samples, self.action_wall)
-            self._baseline = (self.action_wall, seen)
-        return self._baseline[1]
-
     # -- the run -------------------------------------------------------------------------------
 
     def execute(self, *, report: bool) -> RunResult:
         start_wall = self.clock.time()
         self.t0 = self.clock.monotonic()
         captures: list[Capture] = []
+        probe: Probe | None = None
+        observer: Observer | None = None
         try:
             self.lab.up()
         except NetlabError as exc:
@@ -177,16 +111,16 @@ class Run:
             try:
                 self._add_robots()
                 captures = self._start_captures()
-                self._probe = Probe(lambda r: self.backend.connect(self.lab, r))
-                self._observer = Observer(
+                probe = Probe(lambda r: self.backend.connect(self.lab, r))
+                observer = Observer(
                     Probe(lambda r: self.backend.connect(self.lab, r)),
                     self.truth,
                     self.sc.sample,
                     clock=self.clock,
                 ).start()
-                self._timeline()
+                self._timeline(probe, observer)
             finally:
-                self._teardown(captures)
+                self._teardown(captures, probe, observer)
         except (NetlabError, ApiError) as exc:
             self.error = self.error or str(exc)
             self.say(f"ERROR {exc}")
@@ -208,7 +142,7 @@ class Run:
     def _add_robots(self) -> None:
         t = self.clock.monotonic()
         add_robots(self.lab, self.sc)
-        self.record_truth()
+        self.fleet.record_truth()
         took = self.clock.monotonic() - t
         n = len(self.sc.names)
         self.say(f"lab {self.lab.name} up: {n} robots on one medium in {took:.2f} s")
@@ -238,11 +172,13 @@ class Run:
         self.say(f"capturing on {what} ({len(caps)} tcpdumps, {took:.2f} s)")
         return caps
 
-    def _teardown(self, captures: list[Capture]) -> None:
-        if self._observer is not None:
-            self.samples = self._observer.stop()
-        if self._probe is not None:
-            self._probe.close()
+    def _teardown(
+        self, captures: list[Capture], probe: Probe | None, observer: Observer | None
+    ) -> None:
+        if observer is not None:
+            self.samples = observer.stop()
+        if probe is not None:
+            probe.close()
         try:
             if captures:
                 from netlab.capture import CaptureError, stop_all
@@ -264,26 +200,29 @@ class Run:
                     logs.mkdir(exist_ok=True)
                     shutil.copyfile(src, logs / f"{name}.log")
 
-    def _timeline(self) -> None:
+    def _timeline(self, probe: Probe, observer: Observer) -> None:
+        common = (self.sc, self.lab, self.clock, self.fleet, probe, self.truth, self.say)
+        acting = StepContext(*common, quick=self.quick)
+        judging = CheckContext(*common, observer, self.history, self.captured, self.t0)
         for i, step in enumerate(self.sc.steps, 1):
             wall = self.clock.time()
             try:
                 if isinstance(step, Check):
-                    ok = self._check(i, step)
+                    ok = self._check(i, step, judging)
                 else:
-                    self.action_wall = wall
+                    self.history.action_wall = wall
                     before = self._usage() if i in self.measured else None
-                    self.say(ACTIONS[type(step)](self, step))
+                    self.say(ACTIONS[type(step)](acting, step))
                     self.event = self.clock.monotonic()
                     if before is not None:
-                        self.usage[i] = (before, self._usage())
+                        self.history.usage[i] = (before, self._usage())
                     ok = True
             except (NetlabError, ApiError, Bad) as exc:
                 self.error = f"{step_ref(i, step)}: {exc}"
                 self.say(f"ERROR {self.error}")
                 return
             finally:
-                self.windows[i] = (wall, self.clock.time())
+                self.history.windows[i] = (wall, self.clock.time())
             if not ok and isinstance(step, Check) and step.fatal:
                 self.say(f"stopping: {step_ref(i, step)} failed and later steps rely on it")
                 return
@@ -296,7 +235,7 @@ class Run:
             return {}
         kids = procstat.children()
         out: dict[str, procstat.Usage] = {}
-        for name in self.running:
+        for name in self.fleet.running:
             pid = pid_of(name)
             if pid is not None:
                 out[name] = procstat.Usage.read(procstat.tree(pid, kids))
@@ -304,21 +243,21 @@ class Run:
 
     # -- checks --------------------------------------------------------------------------------
 
-    def _check(self, index: int, step: Check) -> bool:
+    def _check(self, index: int, step: Check, ctx: CheckContext) -> bool:
         cond = step.condition
         res = CheckResult(index, cond.kind, step.describe(), step.fatal)
         self.checks.append(res)
         judge = JUDGES.get(type(cond))
         if judge is not None:
-            judge(self, index, cond, res)
+            judge(ctx, index, cond, res)
         else:
-            self._poll(step, res)
+            self._poll(step, res, ctx)
             after = AFTER_POLL.get(type(cond))
             if after is not None:
-                after(self, cond, res)
+                after(ctx, cond, res)
         return res.ok is not False
 
-    def _poll(self, step: Check, res: CheckResult) -> None:
+    def _poll(self, step: Check, res: CheckResult, ctx: CheckContext) -> None:
         evaluate = EVALUATORS[type(step.condition)]
         within = self.seconds(step.within) if step.within is not None else 0.0
         during = self.seconds(step.during) if step.during is not None else None
@@ -329,7 +268,7 @@ class Run:
         first = True
         late: list[str] = []  # what was wrong at the deadline
         while True:
-            problems = evaluate(self, step.condition)
+            problems = evaluate(ctx, step.condition)
             now = self.clock.monotonic()
             if not problems and (first or now - since <= within):
                 # At a first look after the deadline (earlier checks took that long) it
@@ -358,7 +297,7 @@ class Run:
             end = held_from + during
             while self.clock.monotonic() < end:
                 self.clock.sleep(min(period, max(0.0, end - self.clock.monotonic())))
-                problems = evaluate(self, step.condition)
+                problems = evaluate(ctx, step.condition)
                 if problems:
                     res.ok = False
                     res.at = self.elapsed()
@@ -383,14 +322,14 @@ class Run:
 
     def _finish(self, result: RunResult, report: bool) -> None:
         records = None
-        if self.captured and (self.pending or report):
+        if self.captured and (self.history.deferred or report):
             try:
                 records = read_run(self.run_dir)
             except ImportError as exc:
                 self.say(f"cannot read the captures: {missing_extra(exc, 'reading captures')}")
             except (NetlabError, OSError) as exc:
                 self.say(f"cannot read the captures: {exc}")
-        for res, cond, since, until in self.pending:
+        for res, cond, since, until in self.history.deferred:
             if records is None:
                 res.detail = "captures could not be read: not judged"
                 continue
@@ -432,7 +371,7 @@ class Run:
     def _meta(self, result: RunResult, lag: float) -> dict[str, object]:
         steps = []
         for i, step in enumerate(self.sc.steps, 1):
-            window = self.windows.get(i)
+            window = self.history.windows.get(i)
             steps.append(
                 {
                     "step": i,

@@ -11,7 +11,7 @@ their inputs.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 from netlab import procstat
 from netlab.analysis import natural_order
@@ -24,6 +24,7 @@ from netlab.judging import (
     unreachable_problems,
 )
 from netlab.samples import agreement, flaps
+from netlab.scenario.backend import LabLike
 from netlab.scenario.conditions import (
     Agreement,
     Condition,
@@ -37,46 +38,44 @@ from netlab.scenario.conditions import (
     Unreachable,
     Updates,
 )
+from netlab.scenario.context import CheckContext
 from netlab.scenario.model import reference
 from netlab.scenario.results import CheckResult
-from netlab.scenario.spec import select_groups
-
-if TYPE_CHECKING:
-    from netlab.scenario.backend import LabLike
-    from netlab.scenario.engine import Run
 
 C = TypeVar("C", bound=Condition)
-Evaluator = Callable[["Run", Any], list[str]]
-Judge = Callable[["Run", int, Any, CheckResult], None]
+Evaluator = Callable[[CheckContext, Any], list[str]]
+Judge = Callable[[CheckContext, int, Any, CheckResult], None]
 
 #: Polled condition class -> what is wrong now (an empty list: it holds).
 EVALUATORS: dict[type[Condition], Evaluator] = {}
 #: Polled condition class -> what it adds to its result once it held (or not).
-AFTER_POLL: dict[type[Condition], Callable[[Run, Any, CheckResult], None]] = {}
+AFTER_POLL: dict[type[Condition], Callable[[CheckContext, Any, CheckResult], None]] = {}
 #: Judged-once condition class -> fills in the check's result.
 JUDGES: dict[type[Condition], Judge] = {}
 
 
-def evaluates(cls: type[C]) -> Callable[[Callable[[Run, C], list[str]]], Any]:
-    def register(fn: Callable[[Run, C], list[str]]) -> Callable[[Run, C], list[str]]:
+def evaluates(cls: type[C]) -> Callable[[Callable[[CheckContext, C], list[str]]], Any]:
+    def register(
+        fn: Callable[[CheckContext, C], list[str]],
+    ) -> Callable[[CheckContext, C], list[str]]:
         EVALUATORS[cls] = fn
         return fn
 
     return register
 
 
-def judges(cls: type[C]) -> Callable[[Callable[[Run, int, C, CheckResult], None]], Any]:
+def judges(cls: type[C]) -> Callable[[Callable[[CheckContext, int, C, CheckResult], None]], Any]:
     def register(
-        fn: Callable[[Run, int, C, CheckResult], None],
-    ) -> Callable[[Run, int, C, CheckResult], None]:
+        fn: Callable[[CheckContext, int, C, CheckResult], None],
+    ) -> Callable[[CheckContext, int, C, CheckResult], None]:
         JUDGES[cls] = fn
         return fn
 
     return register
 
 
-def say_verdict(run: Run, res: CheckResult) -> None:
-    run.say(f"{'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
+def say_verdict(ctx: CheckContext, res: CheckResult) -> None:
+    ctx.say(f"{'ok   ' if res.ok else 'FAIL '} {res.description}: {res.detail}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -84,46 +83,48 @@ def say_verdict(run: Run, res: CheckResult) -> None:
 
 
 @evaluates(Lists)
-def lists(run: Run, cond: Lists) -> list[str]:
-    running = set(run.running)
+def lists(ctx: CheckContext, cond: Lists) -> list[str]:
+    running = set(ctx.fleet.running)
     if cond.groups is not None:
-        groups = select_groups(run.ctx, cond.groups)
+        groups = ctx.fleet.groups(cond.groups)
     else:
-        groups = [run.names(cond.robots if cond.robots is not None else "running")]
+        groups = [ctx.fleet.names(cond.robots if cond.robots is not None else "running")]
     expected: dict[str, set[str]] = {}
     for g in groups:
         members = [r for r in g if r in running]
         if not members:
             return [f"no robot of {fmt_set(g)} runs"]
         expected.update({a: set(members) - {a} for a in members})
-    views = run.probe.neighbours(expected)
-    services = {r: set(s) for r, s in run.services.items()} if cond.services else None
+    views = ctx.probe.neighbours(expected)
+    services = {r: set(s) for r, s in ctx.fleet.services.items()} if cond.services else None
     return expect_problems(views, expected, services=services, exact=cond.exact)
 
 
 @evaluates(Medium)
-def medium(run: Run, cond: Medium) -> list[str]:
-    state = run.truth.now()
-    robots = run.running_of(cond.robots)
+def medium(ctx: CheckContext, cond: Medium) -> list[str]:
+    state = ctx.truth.now()
+    robots = ctx.fleet.running_of(cond.robots)
     expected = {a: state.expected(a) for a in robots}
-    services = {r: set(s) for r, s in run.services.items()} if cond.services else None
-    return expect_problems(run.probe.neighbours(robots), expected, services=services)
+    services = {r: set(s) for r, s in ctx.fleet.services.items()} if cond.services else None
+    return expect_problems(ctx.probe.neighbours(robots), expected, services=services)
 
 
 @evaluates(Unreachable)
-def unreachable(run: Run, cond: Unreachable) -> list[str]:
-    gone = run.names(cond.robots)
-    on = [r for r in run.running_of(cond.on) if r not in gone]
-    return unreachable_problems(run.probe.neighbours(on), gone, on)
+def unreachable(ctx: CheckContext, cond: Unreachable) -> list[str]:
+    gone = ctx.fleet.names(cond.robots)
+    on = [r for r in ctx.fleet.running_of(cond.on) if r not in gone]
+    return unreachable_problems(ctx.probe.neighbours(on), gone, on)
 
 
 @evaluates(InHistory)
-def in_history(run: Run, cond: InHistory) -> list[str]:
-    kept = run.names(cond.robots)
-    on = [r for r in run.running_of(cond.on) if r not in kept]
-    fell_from = run.indicators_before_last_step() if cond.falling else None
+def in_history(ctx: CheckContext, cond: InHistory) -> list[str]:
+    kept = ctx.fleet.names(cond.robots)
+    on = [r for r in ctx.fleet.running_of(cond.on) if r not in kept]
+    fell_from = (
+        ctx.history.indicators_before_last_step(ctx.observer.samples) if cond.falling else None
+    )
     return history_problems(
-        run.probe.histories(on),
+        ctx.probe.histories(on),
         kept,
         on,
         reachable=cond.reachable,
@@ -143,16 +144,16 @@ def round_trips(lab: LabLike) -> dict[tuple[str, str], float]:
 
 
 @evaluates(Indicator)
-def indicator(run: Run, cond: Indicator) -> list[str]:
-    robots = run.running_of(cond.robots)
-    return indicator_problems(run.probe.neighbours(robots), round_trips(run.lab), cond.tolerance)
+def indicator(ctx: CheckContext, cond: Indicator) -> list[str]:
+    robots = ctx.fleet.running_of(cond.robots)
+    return indicator_problems(ctx.probe.neighbours(robots), round_trips(ctx.lab), cond.tolerance)
 
 
-def _indicator_data(run: Run, cond: Indicator, res: CheckResult) -> None:
-    rates = round_trips(run.lab)
+def _indicator_data(ctx: CheckContext, cond: Indicator, res: CheckResult) -> None:
+    rates = round_trips(ctx.lab)
     seen: dict[str, dict[str, float | None]] = {}
     errors: list[float] = []
-    for robot, view in run.probe.neighbours(run.running_of(cond.robots)).items():
+    for robot, view in ctx.probe.neighbours(ctx.fleet.running_of(cond.robots)).items():
         seen[robot] = {}
         for peer in natural_order(list(view.reachable)):
             entry = view.entry(peer)
@@ -174,16 +175,16 @@ def _indicator_data(run: Run, cond: Indicator, res: CheckResult) -> None:
             f"{sum(errors) / len(errors):.3f}, max {max(errors):.3f}"
         )
         res.detail = f"{res.detail}; {note}" if res.detail else note
-        run.say(f"      {note}")
+        ctx.say(f"      {note}")
 
 
 AFTER_POLL[Indicator] = _indicator_data
 
 
 @evaluates(DistinctAddresses)
-def distinct_addresses(run: Run, cond: DistinctAddresses) -> list[str]:
-    robots = run.running_of(cond.robots)
-    return address_problems(run.probe.neighbours(robots), run.probe.addresses(robots))
+def distinct_addresses(ctx: CheckContext, cond: DistinctAddresses) -> list[str]:
+    robots = ctx.fleet.running_of(cond.robots)
+    return address_problems(ctx.probe.neighbours(robots), ctx.probe.addresses(robots))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -191,17 +192,16 @@ def distinct_addresses(run: Run, cond: DistinctAddresses) -> list[str]:
 
 
 @judges(Flaps)
-def judge_flaps(run: Run, index: int, cond: Flaps, res: CheckResult) -> None:
-    ref = reference(run.sc.steps, index, cond.over)
-    start, end = run.windows[ref]
-    per = run.seconds(cond.per)
-    stats = flaps(run.observer.samples, run.truth.states(), per=per, start=start, end=end)
-    res.at = run.elapsed()
+def judge_flaps(ctx: CheckContext, index: int, cond: Flaps, res: CheckResult) -> None:
+    ref, (start, end) = ctx.history.window(index, cond.over)
+    per = ctx.seconds(cond.per)
+    stats = flaps(ctx.observer.samples, ctx.truth.states(), per=per, start=start, end=end)
+    res.at = ctx.elapsed()
     res.data = {"flaps": stats.to_json(), "over_step": ref}
     minutes = (end - start) / 60.0
     res.detail = (
         f"{stats.flaps} flaps among {stats.pairs} linked pairs in {minutes:.1f} min "
-        f"({stats.samples} samples every {run.sc.sample:g} s); at most {stats.most} of one "
+        f"({stats.samples} samples every {ctx.scenario.sample:g} s); at most {stats.most} of one "
         f"pair within {per:g} s (allowed {cond.at_most})"
     )
     if stats.samples < 2:
@@ -217,14 +217,14 @@ def judge_flaps(run: Run, index: int, cond: Flaps, res: CheckResult) -> None:
                 for a, b, n in stats.worst[:3]
             )
             res.detail += f"; worst: {worst}"
-    say_verdict(run, res)
+    say_verdict(ctx, res)
 
 
 @judges(Resources)
-def judge_resources(run: Run, index: int, cond: Resources, res: CheckResult) -> None:
-    ref = reference(run.sc.steps, index, cond.over)
-    res.at = run.elapsed()
-    before, after = run.usage.get(ref, ({}, {}))
+def judge_resources(ctx: CheckContext, index: int, cond: Resources, res: CheckResult) -> None:
+    ref = reference(ctx.scenario.steps, index, cond.over)
+    res.at = ctx.elapsed()
+    before, after = ctx.history.usage.get(ref, ({}, {}))
     per = {
         r: procstat.window(before[r], after[r])
         for r in natural_order(list(before))
@@ -232,7 +232,7 @@ def judge_resources(run: Run, index: int, cond: Resources, res: CheckResult) -> 
     }
     if not per:
         res.detail = "no /proc readings of the daemons (lab without pids): not judged"
-        run.say(f"skip  {res.description}: {res.detail}")
+        ctx.say(f"skip  {res.description}: {res.detail}")
         return
     cpu = [u["cpu_percent"] for u in per.values()]
     pss = [u["pss_mib"] for u in per.values()]
@@ -268,25 +268,24 @@ def judge_resources(run: Run, index: int, cond: Resources, res: CheckResult) -> 
     res.ok = not over
     if over:
         res.detail += "; over the limit: " + ", ".join(over[:6])
-    say_verdict(run, res)
+    say_verdict(ctx, res)
 
 
 @judges(Agreement)
-def judge_agreement(run: Run, index: int, cond: Agreement, res: CheckResult) -> None:
-    ref = reference(run.sc.steps, index, cond.over)
-    start, end = run.windows[ref]
-    lag = run.seconds(cond.lag)
-    loss_lag = run.seconds(cond.loss_lag) if cond.loss_lag is not None else lag
+def judge_agreement(ctx: CheckContext, index: int, cond: Agreement, res: CheckResult) -> None:
+    ref, (start, end) = ctx.history.window(index, cond.over)
+    lag = ctx.seconds(cond.lag)
+    loss_lag = ctx.seconds(cond.loss_lag) if cond.loss_lag is not None else lag
     stats = agreement(
-        run.observer.samples,
-        run.truth.states(),
+        ctx.observer.samples,
+        ctx.truth.states(),
         lag=lag,
         loss_lag=loss_lag,
         start=start,
         end=end,
     )
     value = stats.pair_share if cond.measure == "pairs" else stats.sample_share
-    res.at = run.elapsed()
+    res.at = ctx.elapsed()
     res.data = {
         "agreement": stats.to_json(),
         "lag_s": lag,
@@ -303,7 +302,9 @@ def judge_agreement(run: Run, index: int, cond: Agreement, res: CheckResult) -> 
     )
     if stats.samples == 0:
         res.ok = False
-        res.detail = f"no samples in the window of step {ref} (observer every {run.sc.sample} s)"
+        res.detail = (
+            f"no samples in the window of step {ref} (observer every {ctx.scenario.sample} s)"
+        )
     else:
         res.ok = value >= cond.at_least
         if not res.ok and stats.worst:
@@ -311,16 +312,16 @@ def judge_agreement(run: Run, index: int, cond: Agreement, res: CheckResult) -> 
                 f"{a} on {b} wrong in {share:.0%} of samples" for a, b, share in stats.worst[:3]
             )
             res.detail += f"; worst: {worst}"
-    say_verdict(run, res)
+    say_verdict(ctx, res)
 
 
 @judges(Updates)
-def judge_updates(run: Run, index: int, cond: Updates, res: CheckResult) -> None:
-    ref = reference(run.sc.steps, index, cond.after)
-    res.at = run.elapsed()
-    if not run.captured:
+def judge_updates(ctx: CheckContext, index: int, cond: Updates, res: CheckResult) -> None:
+    _, (since, _) = ctx.history.window(index, cond.after)
+    res.at = ctx.elapsed()
+    if not ctx.captured:
         res.detail = "needs captures (capture is 'none'): not judged"
-        run.say(f"skip  {res.description}: {res.detail}")
+        ctx.say(f"skip  {res.description}: {res.detail}")
         return
-    run.pending.append((res, cond, run.windows[ref][0], run.clock.time()))
-    run.say(f"...   {res.description}: counted in the captures at the end")
+    ctx.history.deferred.append((res, cond, since, ctx.clock.time()))
+    ctx.say(f"...   {res.description}: counted in the captures at the end")

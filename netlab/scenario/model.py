@@ -17,8 +17,8 @@ from netlab.robots import RUNTIMES
 from netlab.scenario.spec import (
     KEYWORDS,
     Bad,
-    Ctx,
     ScenarioError,
+    Selectors,
     area_size,
     bounded,
     check_field,
@@ -124,8 +124,9 @@ class Scenario:
             return tuple(f"r{i}" for i in range(1, self.robots + 1))
         return tuple(self.robots)
 
-    def _ctx(self) -> Ctx:
-        return Ctx(self.names, {g: tuple(m) for g, m in self.groups.items()})
+    def selectors(self) -> Selectors:
+        """Its robots and groups, which a step's robot selectors name."""
+        return Selectors(self.names, {g: tuple(m) for g, m in self.groups.items()})
 
     def _validate(self) -> None:
         if not isinstance(self.name, str) or not re.fullmatch(
@@ -192,7 +193,7 @@ class Scenario:
                 if m not in names:
                     raise Bad(f"groups: {group}: unknown robot {m!r}")
         check_field("sdfrd", lambda: check_options(self.sdfrd))
-        ctx = self._ctx()
+        selectors = self.selectors()
         labels: set[str] = set()
         colliding: set[str] = set()
         for i, step in enumerate(self.steps, 1):
@@ -206,7 +207,7 @@ class Scenario:
                     if step.label in labels:
                         raise Bad(f"label: {step.label!r} is already the label of a step")
                     labels.add(step.label)
-                step._validate(ctx)
+                step._validate(selectors)
                 if isinstance(step, Check):
                     for name in step.condition.refers_to:
                         refers(self.steps, i, name, getattr(step.condition, name))

@@ -107,7 +107,7 @@ def seconds(value: Span, beacon: float) -> float:
 
 
 @dataclass(frozen=True, slots=True)
-class Ctx:
+class Selectors:
     """What a scenario's steps are checked against: its robots and groups."""
 
     names: tuple[str, ...]
@@ -205,10 +205,10 @@ def boolean(value: object) -> bool:
     return value
 
 
-def select_groups(ctx: Ctx, groups: Sequence[Robots]) -> list[tuple[str, ...]]:
+def select_groups(selectors: Selectors, groups: Sequence[Robots]) -> list[tuple[str, ...]]:
     if isinstance(groups, str) or not isinstance(groups, Sequence) or not groups:
         raise Bad(f"expected a list of groups, got {groups!r}")
-    out = [ctx.robots(g) for g in groups]
+    out = [selectors.robots(g) for g in groups]
     seen: set[str] = set()
     for g in out:
         if seen & set(g):

@@ -18,9 +18,9 @@ from netlab.ranges import Pos
 from netlab.scenario.conditions import Condition
 from netlab.scenario.spec import (
     Bad,
-    Ctx,
     Duration,
     Robots,
+    Selectors,
     Span,
     Spread,
     area_size,
@@ -44,7 +44,7 @@ class Step:
     kind: ClassVar[str] = "step"
     label: str | None = field(default=None, kw_only=True)
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         pass
 
 
@@ -57,8 +57,8 @@ class Start(Step):
     options: Mapping[str, Any] = field(default_factory=dict)
     kind: ClassVar[str] = "start"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         check_field("options", lambda: check_options(self.options))
 
 
@@ -69,8 +69,8 @@ class Stop(Step):
     robots: Robots
     kind: ClassVar[str] = "stop"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
 
 
 @dataclass(frozen=True)
@@ -80,8 +80,8 @@ class Kill(Step):
     robots: Robots
     kind: ClassVar[str] = "kill"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
 
 
 @dataclass(frozen=True)
@@ -92,8 +92,8 @@ class Restart(Step):
     hard: bool = False
     kind: ClassVar[str] = "restart"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         check_field("hard", lambda: boolean(self.hard))
 
 
@@ -104,8 +104,8 @@ class Partition(Step):
     groups: Sequence[Robots]
     kind: ClassVar[str] = "partition"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("groups", lambda: select_groups(ctx, self.groups))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("groups", lambda: select_groups(selectors, self.groups))
 
 
 @dataclass(frozen=True)
@@ -123,8 +123,8 @@ class Move(Step):
     to: Pos
     kind: ClassVar[str] = "move"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robot", lambda: ctx.robot(self.robot))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robot", lambda: selectors.robot(self.robot))
         if not (isinstance(self.to, Sequence) and len(self.to) == 2):
             raise Bad(f"to: expected (x, y) in metres, got {self.to!r}")
         bounded(self.to[0], "to", -1e6, 1e6)
@@ -148,8 +148,8 @@ class Mobility(Step):
     tick: float = 0.5
     kind: ClassVar[str] = "mobility"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         check_field("duration", lambda: Duration.of(self.duration))
         if self.quick is not None:
             check_field("quick", lambda: Duration.of(self.quick or 0))
@@ -177,14 +177,15 @@ class Quality(Step):
     both: bool = True
     kind: ClassVar[str] = "quality"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         if self.peers is not None:
-            check_field("peers", lambda: ctx.robots(self.peers or ()))
+            check_field("peers", lambda: selectors.robots(self.peers or ()))
         if self.loss is not None:
             bounded(self.loss, "loss", 0.0, 100.0)
         check_field("both", lambda: boolean(self.both))
-        if not pairs_of(ctx.robots(self.robots), ctx.robots(self.peers or self.robots), both=False):
+        robots = selectors.robots(self.robots)
+        if not pairs_of(robots, selectors.robots(self.peers or self.robots), both=False):
             raise Bad("names no pair of two different robots")
 
 
@@ -203,10 +204,10 @@ class Shape(Step):
     params: Mapping[str, Any] = field(default_factory=dict, metadata=toml(Spread(_shape_params)))
     kind: ClassVar[str] = "shape"
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         from netlab.shaping import LinkShape  # late: it loads pyroute2
 
-        check_field("robots", lambda: ctx.robots(self.robots))
+        check_field("robots", lambda: selectors.robots(self.robots))
         try:
             LinkShape.of(**dict(self.params))
         except (NetlabError, TypeError, ValueError) as exc:
@@ -224,8 +225,8 @@ class Publish(Step):
     attributes: Mapping[str, Any] = field(default_factory=dict)
     kind: ClassVar[str] = "publish"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         for name in ("service", "type"):
             value = getattr(self, name)
             if not isinstance(value, str) or not value:
@@ -247,8 +248,8 @@ class Unpublish(Step):
     service: str
     kind: ClassVar[str] = "unpublish"
 
-    def _validate(self, ctx: Ctx) -> None:
-        check_field("robots", lambda: ctx.robots(self.robots))
+    def _validate(self, selectors: Selectors) -> None:
+        check_field("robots", lambda: selectors.robots(self.robots))
         if not isinstance(self.service, str) or not self.service:
             raise Bad(f"service: expected a non-empty string, got {self.service!r}")
 
@@ -273,10 +274,10 @@ class Collision(Step):
     robots: Sequence[str]
     kind: ClassVar[str] = "collision"
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         if isinstance(self.robots, str) or not isinstance(self.robots, Sequence):
             raise Bad(f"robots: expected a list of robot names, got {self.robots!r}")
-        names = [ctx.robot(r) for r in self.robots]
+        names = [selectors.robot(r) for r in self.robots]
         if len(set(names)) < 2:
             raise Bad(f"robots: needs two or more different robots, got {list(self.robots)}")
 
@@ -289,7 +290,7 @@ class Sleep(Step):
     quick: Span | None = None
     kind: ClassVar[str] = "sleep"
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         check_field("duration", lambda: Duration.of(self.duration))
         if self.quick is not None:
             check_field("quick", lambda: Duration.of(self.quick or 0))
@@ -312,7 +313,7 @@ class Check(Step):
     def describe(self) -> str:
         return self.label or self.condition.describe()
 
-    def _validate(self, ctx: Ctx) -> None:
+    def _validate(self, selectors: Selectors) -> None:
         if not isinstance(self.condition, Condition):
             raise Bad(f"condition: expected a Condition (Lists(), ...), got {self.condition!r}")
         for name, value in (("within", self.within), ("during", self.during)):
@@ -326,7 +327,7 @@ class Check(Step):
             raise Bad(f"a {self.condition.kind} check needs within (a deadline) or during")
         if not self.condition.polled and timed:
             raise Bad(f"a {self.condition.kind} check is judged once: no within or during")
-        self.condition._validate(ctx)
+        self.condition._validate(selectors)
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ def lay_out(lab: LabLike, sc: Scenario) -> list[str]:
     """Apply the scenario's steps (all of LAYOUT_STEPS, see `check_layout`) to the lab's
     medium in order, as one change; what each did."""
     check_layout(sc)
-    ctx = sc._ctx()
+    ctx = sc.selectors()
     done: list[str] = []
     with lab.batch():
         for step in sc.steps:
