@@ -2,8 +2,9 @@
 
 `write_report(run_dir, records=...)` takes the records of the run's captures
 (`netlab.pcap.read_run`) and, when the scenario sampled them, connectivity and
-neighbour-table agreement over time.  All times are UNIX seconds (``time.time()``), the clock
-of the pcaps; plots show seconds since the start of the run.
+neighbour-table agreement over time (`netlab.samples`).  Its ``traffic`` is the paper's
+measure (`netlab.paper`).  All times are UNIX seconds (``time.time()``), the clock of the
+pcaps; plots show seconds since the start of the run.
 
 Plots (drawn by `netlab.plots`):
 
@@ -127,7 +128,7 @@ def write_report(
 
 
 # ---------------------------------------------------------------------------------------------
-# Figures
+# The report's parts: its window, its captures, the summaries of the samples
 
 
 def _time(rec: Record) -> float:
