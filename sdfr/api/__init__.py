@@ -7,14 +7,16 @@ cached and revalidated per request with one tiny query: the peers on SQLite's
 the local registrations on their version (bumped by every publish/unpublish, whichever
 connection made it).
 
-The package: `http` (the HTTP/1.1 server: requests, answers, streams, routes, listeners),
+The package: `http` (the HTTP/1.1 server: requests, answers, streams, routes), `httpparse`
+(reading requests, the limits), `httpserve` (the connection loop, the listeners),
 `replies` (JSON answers and errors), `server` (the runner: JSON even for what fails before a
 handler), `doors` (who may knock), `state` (status, cached store views, the
 writer), `handlers`, `metrics`, `openapi` (the document) and `app` (routes).
 """
 
 from sdfr.api.app import create_app
-from sdfr.api.http import App, TCPSite, UnixSite
+from sdfr.api.http import App
+from sdfr.api.httpserve import TCPSite, UnixSite
 from sdfr.api.openapi import openapi_document
 from sdfr.api.replies import MAX_BODY
 from sdfr.api.server import Runner

@@ -7,8 +7,9 @@ import logging
 import time
 from typing import Any
 
-from sdfr.api import http
-from sdfr.api.http import App, HttpError, Request, Response, RouteError
+from sdfr.api import httpserve
+from sdfr.api.http import App, Request, Response, RouteError
+from sdfr.api.httpparse import HttpError
 from sdfr.api.replies import Handler, RequestError, cannot_write_status, error_response
 from sdfr.api.state import state_of
 from sdfr.errors import ValidationError
@@ -78,7 +79,7 @@ def json_parse_error(status: int, message: str) -> Response:
     return error_response(status, text or _PARSE_ERRORS.get(status, "malformed HTTP request"))
 
 
-class Runner(http.Runner):
+class Runner(httpserve.Runner):
     """The API's runner: errors before any handler are JSON, and idle and half-sent
     connections are closed after IDLE_TIMEOUT."""
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 import asyncio
 import socket
 
-from sdfr.api.http import App, AppKey, Request, Response, Runner, StreamResponse, TCPSite
+from sdfr.api.http import App, AppKey, Request, Response, StreamResponse
+from sdfr.api.httpserve import Runner, TCPSite
 from tests.support.api import aio, free_port
 
 GONE = AppKey("gone", asyncio.Event)
