@@ -52,9 +52,11 @@ The package, in the order a run reads it: `spec` (durations, robot selection, th
 fields), `steps` and `conditions` (one frozen dataclass each, with its file keys as fields and
 the `STEPS`/`CONDITIONS` registries), `model` (`Scenario`), `files` (TOML read through the
 dataclasses' own fields), `backend` (what the engine needs of a lab, a daemon and time),
-`actions` (one function per step kind), `judges` (one per condition kind), `engine` (`Run`,
-`run`), `results` and `runfolder`.  A new step or check is a class in `steps`/`conditions`
-(registered there) and its function in `actions`/`judges`.
+`context` (what an action or a judge is given: `StepContext`, `CheckContext`), `actions` (one
+function per step kind), `judges` (one per condition kind), `engine` (`Run`, `run`: the only
+module that holds a run; actions and judges never import it), `results` and `runfolder`.  A
+new step or check is a class in `steps`/`conditions` (registered there) and its function in
+`actions`/`judges`, which takes the context and the step or condition.
 """
 
 from netlab.scenario.backend import Backend, LabLike, LabSpec, sdfrd_flags

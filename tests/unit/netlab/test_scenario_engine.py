@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 
 from netlab.clock import VirtualClock
+from netlab.observe import Probe
+from netlab.ranges import UnitDisc
 from netlab.scenario import (
     CONDITIONS,
     PRODUCT_BEACON,
@@ -27,13 +29,17 @@ from netlab.scenario import (
     Scenario,
     Sleep,
     Start,
+    Stop,
     Unreachable,
     Wait,
     run,
 )
 from netlab.scenario.actions import ACTIONS
+from netlab.scenario.backend import LabSpec
+from netlab.scenario.context import Fleet, StepContext
 from netlab.scenario.judges import EVALUATORS, JUDGES
-from tests.support.fakelab import FakeLab, quiet
+from netlab.truth import TruthLog
+from tests.support.fakelab import FakeClient, FakeLab, quiet
 
 
 def test_every_step_kind_has_one_action_and_every_condition_one_way_to_be_judged() -> None:
@@ -42,6 +48,23 @@ def test_every_step_kind_has_one_action_and_every_condition_one_way_to_be_judged
     polled = {cls for cls in CONDITIONS.values() if cls.polled}
     assert set(EVALUATORS) == polled, "a polled condition without its evaluator in judges.py"
     assert set(JUDGES) == set(CONDITIONS.values()) - polled, "a judged-once condition unjudged"
+
+
+def test_an_action_needs_only_its_context_not_an_engine() -> None:
+    sc = Scenario("alone", robots=3, groups={"pair": ["r1", "r2"]}, capture="none")
+    lab = FakeLab(LabSpec("alone", 0, 1, UnitDisc(50.0))).up()
+    for i, name in enumerate(sc.names):
+        lab.add_robot(name, pos=(float(i), 0.0))
+    clock, truth = VirtualClock(), TruthLog()
+    fleet = Fleet(sc.selectors(), lab, truth)
+    probe = Probe(lambda r: FakeClient(lab, r))
+    ctx = StepContext(sc, lab, clock, fleet, probe, truth, quiet([]))
+    said = ACTIONS[Start](ctx, Start())
+    assert said.startswith("start all 3: sdfrd healthy on 3")
+    assert fleet.running == ("r1", "r2", "r3") and lab.running == {"r1", "r2", "r3"}
+    assert ACTIONS[Stop](ctx, Stop("pair")) == "stop r1, r2 (SIGTERM: Byebye)"
+    assert list(fleet.running) == ["r3"] and fleet.names("running") == ("r3",)
+    assert truth.now().running == {"r3"}
 
 
 def test_a_virtual_clock_fires_timers_in_order_while_time_is_slept_through() -> None:
