@@ -20,6 +20,7 @@ from netlab.scenario import (
     Agreement,
     Backend,
     Check,
+    Condition,
     Flaps,
     Lists,
     Merge,
@@ -29,10 +30,13 @@ from netlab.scenario import (
     Scenario,
     Sleep,
     Start,
+    Step,
     Stop,
     Unreachable,
     Wait,
+    conditions,
     run,
+    steps,
 )
 from netlab.scenario.actions import ACTIONS
 from netlab.scenario.backend import LabSpec
@@ -40,6 +44,15 @@ from netlab.scenario.context import Fleet, StepContext
 from netlab.scenario.judges import EVALUATORS, JUDGES
 from netlab.truth import TruthLog
 from tests.support.fakelab import FakeClient, FakeLab, quiet
+
+
+def test_every_step_and_condition_class_is_registered() -> None:
+    def defined(module: object, base: type) -> set[type]:
+        found = {v for v in vars(module).values() if isinstance(v, type) and issubclass(v, base)}
+        return found - {base}
+
+    assert defined(steps, Step) == set(STEPS.values()), "a step class not added to STEPS"
+    assert defined(conditions, Condition) == set(CONDITIONS.values()), "not in CONDITIONS"
 
 
 def test_every_step_kind_has_one_action_and_every_condition_one_way_to_be_judged() -> None:
