@@ -7,6 +7,7 @@ import os
 import socket
 import subprocess
 from collections.abc import Iterator, Sequence
+from ipaddress import IPv4Interface
 from pathlib import Path
 
 from pyroute2 import IPRoute, netns
@@ -94,6 +95,32 @@ def set_sysctl(key: str, value: str) -> None:
     path = Path("/proc/sys") / key.replace(".", "/")
     with kernel_errors(f"setting {key}"):
         path.write_text(value)
+
+
+def ipv4_only(name: str) -> None:
+    """Turn IPv6 off in namespace `name`, for every interface made in it afterwards too."""
+    with inside(name):
+        set_sysctl("net.ipv6.conf.all.disable_ipv6", "1")
+        set_sysctl("net.ipv6.conf.default.disable_ipv6", "1")
+
+
+def bring_up(name: str, ifname: str, address: IPv4Interface | None, doing: str) -> None:
+    """Bring up lo and `ifname` of namespace `name`, give `ifname` `address` (None: none) and
+    the link-scope multicast route: without a default route a namespace cannot send or join
+    multicast."""
+    ipr = open_ns(name)
+    try:
+        with kernel_errors(doing):
+            ipr.link("set", index=ipr.link_lookup(ifname="lo")[0], state="up")
+            index = ipr.link_lookup(ifname=ifname)[0]
+            if address is not None:
+                ipr.addr(
+                    "add", index=index, address=str(address.ip), prefixlen=address.network.prefixlen
+                )
+            ipr.link("set", index=index, state="up")
+            ipr.route("add", dst="224.0.0.0/4", oif=index, scope=RT_SCOPE_LINK)
+    finally:
+        ipr.close()
 
 
 def ns_argv(name: str, argv: Sequence[str]) -> list[str]:

@@ -15,6 +15,10 @@ Everything a lab creates is recorded in its manifest before it is created,
 and `down()` (also `netlab down NAME` from another process, after this one
 died) removes exactly that: see `netlab.cleanup`.
 
+`Lab` is three parts of one job each: this module's life cycle and robots,
+`netlab.labmedium`'s medium (partitions, moves, shaping, the links' truth) and
+`netlab.daemons`' processes (sdfrd, its options checked before it starts, and commands).
+
 Robot ``i`` (from 0, in order of `add_robot`) gets the address
 ``10.<fleet>.<i // 250>.<i % 250 + 1>/16`` and, unless given, a MAC
 derived from the lab's seed and ``i``.
@@ -25,21 +29,20 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-import signal
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from ipaddress import IPv4Interface
 from pathlib import Path
 from types import TracebackType
-from typing import Any, cast
+from typing import Any
 
 from netlab import cleanup, docker, hostlimits, kernel, manifest, naming, shaping
 from netlab.cleanup import SweepResult
+from netlab.daemons import START_TIMEOUT, STOP_TIMEOUT, SUN_PATH_MAX, LabProcesses
 from netlab.doctor import capabilities
 from netlab.errors import (
-    DaemonError,
     LabExistsError,
     LabNotFoundError,
     LabStateError,
@@ -47,27 +50,18 @@ from netlab.errors import (
     UnknownRobotError,
     kernel_errors,
 )
-from netlab.manifest import Manifest, ProcRecord, RobotRecord
+from netlab.labmedium import LabMedium
+from netlab.manifest import Manifest, RobotRecord
 from netlab.medium import Medium
-from netlab.mobility import MobilityModel, walk
-from netlab.ranges import Links, Pos, RangeModel, Topology, with_link_loss
-from netlab.robots import RUNTIMES, Daemon, NamespaceKind, Robot, RobotKind, kind_for
+from netlab.ranges import Pos, RangeModel, Topology
+from netlab.robots import RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
 from netlab.shaping import LinkShape
 from sdfr.client import Client
-from sdfr.errors import ApiError
 
-START_TIMEOUT = 20.0
-STOP_TIMEOUT = 10.0
-SUN_PATH_MAX = 107  # a unix socket path longer than this cannot be bound
+__all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "SUN_PATH_MAX", "Lab", "Robot", "RobotRef"]
 
 
-RobotRef = str | Robot
-
-
-__all__ = ["Lab", "Robot", "RobotRef"]
-
-
-class Lab:
+class Lab(LabProcesses, LabMedium):
     """A fleet of robots on one medium; a context manager (or `up()`/`down()`).
 
     `runtime` is the kind of robot `add_robot` makes unless told otherwise: "namespace" or
@@ -194,9 +188,7 @@ class Lab:
         if self._state != "up":
             return SweepResult()
         self._state = "down"
-        for client in self._clients.values():
-            client.close()
-        self._clients.clear()
+        self._close_clients()
         self.medium.close()
         try:
             result = cleanup.sweep(self.name, self._record)
@@ -220,9 +212,7 @@ class Lab:
             self._record.medium = {**topology, "shapes": shapes}
         self._record.detached = True
         self._save()
-        for client in self._clients.values():
-            client.close()
-        self._clients.clear()
+        self._close_clients()
         self.medium.close()
         self._state = "detached"
 
@@ -390,24 +380,12 @@ class Lab:
 
     def _plumb(self, robot: Robot, kind: RobotKind) -> None:
         kind.create(self.name, robot)
-        ipr = kernel.open_ns(robot.ns)
-        try:
-            with kernel.inside(robot.ns):
-                # Before eth0 exists, so that it inherits the default: IPv4 only.
-                kernel.set_sysctl("net.ipv6.conf.all.disable_ipv6", "1")
-                kernel.set_sysctl("net.ipv6.conf.default.disable_ipv6", "1")
-            self.medium.attach(robot.ns, robot.port, robot.mac)
-            with kernel_errors(f"configuring eth0 of robot {robot.name}"):
-                ipr.link("set", index=ipr.link_lookup(ifname="lo")[0], state="up")
-                eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
-                if self.addressing == "manual":
-                    prefixlen = robot.address.network.prefixlen
-                    ipr.addr("add", index=eth, address=robot.ip, prefixlen=prefixlen)
-                ipr.link("set", index=eth, state="up")
-                # Without a default route a namespace cannot send or join multicast.
-                ipr.route("add", dst="224.0.0.0/4", oif=eth, scope=kernel.RT_SCOPE_LINK)
-        finally:
-            ipr.close()
+        kernel.ipv4_only(robot.ns)  # before eth0 exists, so that it inherits the default
+        self.medium.attach(robot.ns, robot.port, robot.mac)
+        address = robot.address if self.addressing == "manual" else None
+        kernel.bring_up(
+            robot.ns, naming.ROBOT_IFACE, address, f"configuring eth0 of robot {robot.name}"
+        )
 
     def add_robots(
         self, names: Iterable[str], positions: Mapping[str, Pos] | None = None
@@ -416,338 +394,8 @@ class Lab:
         with self.batch():
             return [self.add_robot(n, pos=(positions or {}).get(n, (0.0, 0.0))) for n in names]
 
-    # -- the medium ----------------------------------------------------------------------
-
-    @contextlib.contextmanager
-    def batch(self) -> Iterator[None]:
-        """Apply every medium change made in the body at once, at its end."""
-        self._batch += 1
-        ok = False
-        try:
-            yield
-            ok = True
-        finally:
-            self._batch -= 1
-            if self._batch == 0 and self._state == "up":
-                if ok:
-                    self._apply_medium()
-                else:
-                    with contextlib.suppress(NetlabError):
-                        self._apply_medium()
-
-    def _changed(self) -> None:
-        if self._batch == 0:
-            self._apply_medium()
-
-    def _apply_medium(self) -> None:
-        links = with_link_loss(self.topology.links(), self._nft_loss)
-        self.medium.load(links, {r.name: r.port for r in self._robots.values()})
-
-    def links(self) -> Links:
-        """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
-
-        Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
-        """
-        link_loss = {name: shape.loss for name, shape in self._shapes.items()}
-        return with_link_loss(self.topology.links(), link_loss)
-
-    def neighbours(self, ref: RobotRef) -> set[str]:
-        """The robots `ref` hears now (ground truth)."""
-        name = self.robot(ref).name
-        return {a for (a, b) in self.links() if b == name}
-
     def live_addresses(self, ref: RobotRef) -> list[str]:
         """The IPv4 addresses eth0 has right now (with `addressing="auto"`, sdfrd's choice)."""
         robot = self.robot(ref)
         doing = f"reading the addresses of robot {robot.name}"
         return kernel.addresses(robot.ns, naming.ROBOT_IFACE, doing)
-
-    def positions(self) -> dict[str, Pos]:
-        return dict(self.topology.positions)
-
-    def move(self, ref: RobotRef, pos: Pos) -> None:
-        self._check_up()
-        self.topology.move(self.robot(ref).name, pos)
-        self._changed()
-
-    def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
-        """Cut every link between `groups` (robots in none form one more group)."""
-        self._check_up()
-        self.topology.partition([[self.robot(r).name for r in g] for g in groups])
-        self._changed()
-
-    def merge(self) -> None:
-        """End the partition."""
-        self._check_up()
-        self.topology.merge()
-        self._changed()
-
-    def set_pair_quality(
-        self, a: RobotRef, b: RobotRef, *, loss: float | None, both: bool = True
-    ) -> None:
-        """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
-        self._check_up()
-        self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
-        self._changed()
-
-    def run_mobility(
-        self,
-        model: MobilityModel,
-        duration: float,
-        step: float = 0.5,
-        *,
-        clock: Callable[[], float] = time.monotonic,
-        sleep: Callable[[float], None] = time.sleep,
-    ) -> list[tuple[float, Links]]:
-        """Move the model's robots every `step` seconds for `duration`; the links at each step."""
-        self._check_up()
-        for name in model.robots:
-            self.robot(name)
-        timeline: list[tuple[float, Links]] = []
-
-        def apply(t: float, positions: dict[str, Pos]) -> None:
-            with self.batch():
-                for name, pos in positions.items():
-                    self.topology.move(name, pos)
-            timeline.append((t, self.links()))
-
-        walk(model, duration, step, apply, clock=clock, sleep=sleep)
-        return timeline
-
-    # -- shaping -------------------------------------------------------------------------
-
-    def shape(self, ref: RobotRef, **params: Any) -> LinkShape:
-        """Shape the robot's link (both directions); no parameters removes all shaping.
-
-        delay/jitter in ms, loss/duplicate/reorder/corrupt in %, rate in bit/s or
-        '1mbit'. Raises ShapingUnsupported, before changing anything, for what this
-        kernel cannot do.
-        """
-        self._check_up()
-        robot = self.robot(ref)
-        shape = LinkShape.of(**params)
-        plan = shaping.plan(shape, capabilities())
-        ipr = kernel.open_ns(robot.ns)
-        try:
-            eth = ipr.link_lookup(ifname=naming.ROBOT_IFACE)[0]
-            shaping.apply(ipr, eth, plan, f"eth0 of {robot.name}")
-        finally:
-            ipr.close()
-        shaping.apply(
-            self.medium.ipr, self.medium.ifindex(robot.port), plan, f"the air port of {robot.name}"
-        )
-        self._shapes[robot.name] = shape
-        if plan.nft_loss:
-            self._nft_loss[robot.name] = plan.nft_loss
-        else:
-            self._nft_loss.pop(robot.name, None)
-        self._changed()
-        return shape
-
-    def shape_of(self, ref: RobotRef) -> LinkShape:
-        return self._shapes.get(self.robot(ref).name, LinkShape())
-
-    # -- processes -----------------------------------------------------------------------
-
-    def _record_proc(self, robot: Robot, pid: int, role: str, argv: Sequence[str]) -> None:
-        assert self._record is not None
-        self._record.processes = [p for p in self._record.processes if cleanup.running(p.pid)]
-        self._record.processes.append(
-            ProcRecord(pid, cleanup.start_time(pid) or 0, robot.name, role, list(argv))
-        )
-        self._save()
-
-    def popen(self, ref: RobotRef, argv: Sequence[str], **kw: Any) -> subprocess.Popen[Any]:
-        """Start `argv` inside the robot, in its own session; stopped when the lab goes down.
-
-        Keyword arguments go to subprocess.Popen; stdin defaults to /dev/null.
-        """
-        self._check_up()
-        robot = self.robot(ref)
-        if "process_group" in kw or kw.get("start_new_session", True) is not True:
-            raise ValueError("lab processes always run in a session of their own")
-        kw.setdefault("stdin", subprocess.DEVNULL)
-        kw["start_new_session"] = True  # one process group per process: stop/kill reach all of it
-        full = self.kind(robot.runtime).exec_argv(robot, argv, stdin=_reads_stdin(kw))
-        with kernel_errors(f"starting {argv[0] if argv else argv!r} in robot {robot.name}"):
-            proc: subprocess.Popen[Any] = subprocess.Popen(full, **kw)
-        self._procs.append(proc)
-        self._record_proc(robot, proc.pid, "process", argv)
-        return proc
-
-    def exec(
-        self, ref: RobotRef, argv: Sequence[str], **kw: Any
-    ) -> subprocess.CompletedProcess[Any]:
-        """Run `argv` inside the robot to completion (output captured as text, 30 s timeout).
-
-        Inside a container robot it runs in the robot's container (its image's programs)."""
-        self._check_up()
-        robot = self.robot(ref)
-        kw.setdefault("stdin", subprocess.DEVNULL)
-        if "stdout" not in kw and "stderr" not in kw:
-            kw.setdefault("capture_output", True)
-        kw.setdefault("text", True)
-        kw.setdefault("timeout", 30)
-        full = self.kind(robot.runtime).exec_argv(robot, argv, stdin=_reads_stdin(kw))
-        return subprocess.run(full, **kw)
-
-    def sdfrd_options(self, ref: RobotRef, **options: Any) -> dict[str, Any]:
-        """sdfrd's options for the robot by name: the lab's, updated with `options`."""
-        robot = self.robot(ref)
-        opts: dict[str, Any] = {
-            "iface": naming.ROBOT_IFACE,
-            "fleet": self.fleet,
-            "robot_id": robot.name,
-            "state_dir": robot.state_dir,
-            "addressing": self.addressing,
-        }
-        opts.update(options)
-        return opts
-
-    def sdfrd_argv(self, ref: RobotRef, **options: Any) -> list[str]:
-        """The command line of sdfrd as a host process in the robot's namespace (what a
-        namespace robot runs): `options` are its flags (beacon_interval=0.5)."""
-        return NamespaceKind().argv(self.sdfrd_options(ref, **options))
-
-    def start(self, ref: RobotRef, *, timeout: float = START_TIMEOUT, **options: Any) -> None:
-        """Run sdfrd in the robot and wait until its discovery layer is up."""
-        robot = self.robot(ref)
-        self._spawn(robot, options)
-        self.wait_healthy(robot, timeout)
-
-    def start_all(
-        self, refs: Iterable[RobotRef] | None = None, *, timeout: float = 60.0, **options: Any
-    ) -> None:
-        """Start sdfrd on several robots (all by default) at once, then wait for all."""
-        robots = [self.robot(r) for r in (refs if refs is not None else list(self._robots))]
-        for robot in robots:
-            self._spawn(robot, options)
-        deadline = time.monotonic() + timeout
-        for robot in robots:
-            self.wait_healthy(robot, max(0.1, deadline - time.monotonic()))
-
-    def _spawn(self, robot: Robot, options: dict[str, Any]) -> None:
-        self._check_up()
-        if self.alive(robot):
-            raise LabStateError(f"sdfrd already runs on robot {robot.name}; stop it first")
-        if len(str(robot.api_socket)) > SUN_PATH_MAX:
-            raise NetlabError(
-                f"{robot.api_socket} is longer than a unix socket path may be "
-                f"({SUN_PATH_MAX} bytes): give the lab a shorter workdir"
-            )
-        with kernel_errors(f"creating {robot.state_dir}"):
-            robot.state_dir.mkdir(parents=True, exist_ok=True)
-        kind = self.kind(robot.runtime)
-        started = kind.spawn(self.name, robot, self.sdfrd_options(robot, **options))
-        self._daemons[robot.name] = started.daemon
-        self._daemon_opts[robot.name] = dict(options)
-        self._procs += started.helpers
-        self._record_proc(robot, started.daemon.pid, "sdfrd", started.argv)
-        for helper in started.helpers:
-            self._record_proc(robot, helper.pid, "log", cast(list[str], helper.args))
-
-    def wait_healthy(self, ref: RobotRef, timeout: float = START_TIMEOUT) -> None:
-        """Wait until the robot's sdfrd reports discovery up; DaemonError (and stop it) if not."""
-        robot = self.robot(ref)
-        proc = self._daemons.get(robot.name)
-        if proc is None:
-            raise LabStateError(f"sdfrd was not started on robot {robot.name}")
-        deadline = time.monotonic() + timeout
-        last = "no answer yet"
-        while True:
-            code = proc.poll()
-            if code is not None:
-                raise DaemonError(
-                    f"sdfrd on robot {robot.name} exited with {_status(code)} before it was "
-                    f"healthy; {robot.log} ends with:\n{self.log_tail(robot)}"
-                )
-            if robot.api_socket.exists():
-                try:
-                    health = self.client(robot).health()
-                    if health.get("discovery") == "up":
-                        return
-                    last = f"health {health}"
-                except ApiError as exc:
-                    last = str(exc)
-            if time.monotonic() > deadline:
-                self.kill(robot)
-                raise DaemonError(
-                    f"sdfrd on robot {robot.name} was not healthy within {timeout:.1f} s "
-                    f"({last}); killed it. {robot.log} ends with:\n{self.log_tail(robot)}"
-                )
-            time.sleep(0.02)
-
-    def alive(self, ref: RobotRef) -> bool:
-        proc = self._daemons.get(self.robot(ref).name)
-        return proc is not None and proc.poll() is None
-
-    def daemon_pid(self, ref: RobotRef) -> int | None:
-        """The pid of the robot's running sdfrd supervisor (its layers are its children)."""
-        proc = self._daemons.get(self.robot(ref).name)
-        return proc.pid if proc is not None and proc.poll() is None else None
-
-    def stop(self, ref: RobotRef, timeout: float = STOP_TIMEOUT) -> int:
-        """SIGTERM: a graceful stop (sdfrd says Byebye); its exit status."""
-        robot = self.robot(ref)
-        proc = self._running_daemon(robot)
-        self._drop_client(robot)
-        cleanup.signal_process(proc.pid, signal.SIGTERM)
-        try:
-            return proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            cleanup.signal_process(proc.pid, signal.SIGKILL)
-            proc.wait()
-            raise DaemonError(
-                f"sdfrd on robot {robot.name} did not stop within {timeout} s of SIGTERM; "
-                f"killed it. {robot.log} ends with:\n{self.log_tail(robot)}"
-            ) from None
-
-    def kill(self, ref: RobotRef) -> None:
-        """SIGKILL to the daemon's whole process group: a silent departure, no Byebye."""
-        robot = self.robot(ref)
-        proc = self._running_daemon(robot)
-        self._drop_client(robot)
-        cleanup.signal_process(proc.pid, signal.SIGKILL)
-        proc.wait()
-
-    def restart(self, ref: RobotRef, *, timeout: float = START_TIMEOUT, **options: Any) -> None:
-        """Stop (gracefully, if running) and start again; `options` update the last ones."""
-        robot = self.robot(ref)
-        if self.alive(robot):
-            self.stop(robot)
-        opts = {**self._daemon_opts.get(robot.name, {}), **options}
-        self.start(robot, timeout=timeout, **opts)
-
-    def _running_daemon(self, robot: Robot) -> Daemon:
-        proc = self._daemons.get(robot.name)
-        if proc is None or proc.poll() is not None:
-            raise LabStateError(f"sdfrd is not running on robot {robot.name}")
-        return proc
-
-    def client(self, ref: RobotRef) -> Client:
-        """A client of the robot's sdfrd over its unix socket (one per robot, reused)."""
-        robot = self.robot(ref)
-        if robot.name not in self._clients:
-            self._clients[robot.name] = Client(unix_socket=robot.api_socket, timeout=2.0)
-        return self._clients[robot.name]
-
-    def _drop_client(self, robot: Robot) -> None:
-        client = self._clients.pop(robot.name, None)
-        if client is not None:
-            client.close()
-
-    def log_tail(self, ref: RobotRef, lines: int = 20) -> str:
-        try:
-            text = self.robot(ref).log.read_text(errors="replace")
-        except OSError:
-            return "(no log)"
-        return "\n".join(text.splitlines()[-lines:])
-
-
-def _reads_stdin(kw: Mapping[str, Any]) -> bool:
-    """Whether a process started with Popen/run keywords `kw` is given a standard input."""
-    return "input" in kw or kw.get("stdin") not in (None, subprocess.DEVNULL)
-
-
-def _status(code: int) -> str:
-    return f"signal {-code}" if code < 0 else f"status {code}"

@@ -88,6 +88,10 @@ class Robot:
         return (self.ns, daemon_container(self.ns))
 
 
+#: A robot by its name, or the robot.
+RobotRef = str | Robot
+
+
 def daemon_container(robot_container: str) -> str:
     """The name of a robot's daemon container ('.' is in no robot name: never another's)."""
     return f"{robot_container}.sdfrd"

@@ -25,6 +25,7 @@ from pyroute2.netlink.exceptions import NetlinkError
 from pyroute2.netlink.rtnl import TC_H_ROOT
 from pyroute2.netlink.rtnl.tcmsg import sched_netem
 
+from netlab import kernel
 from netlab.doctor import Capabilities
 from netlab.errors import InvalidShapeError, ShapingUnsupported, kernel_errors
 
@@ -221,3 +222,12 @@ def apply(ipr: IPRoute, index: int, shape_plan: ShapePlan, where: str) -> None:
         ipr.tc(
             "replace", kind=shape_plan.kind, index=index, handle=ROOT_HANDLE, **shape_plan.options
         )
+
+
+def apply_in_ns(ns: str, ifname: str, shape_plan: ShapePlan, where: str) -> None:
+    """`apply` to interface `ifname` of network namespace `ns`."""
+    ipr = kernel.open_ns(ns)
+    try:
+        apply(ipr, ipr.link_lookup(ifname=ifname)[0], shape_plan, where)
+    finally:
+        ipr.close()

@@ -1,0 +1,155 @@
+"""A lab's medium, as its robots hear it: the ranges and partitions of `netlab.ranges`
+applied through `netlab.medium` in batches, mobility, per-robot link shaping, and the truth
+of who hears whom (`links`).  A part of `Lab` (see `netlab.lab`)."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterable, Iterator
+from typing import TYPE_CHECKING, Any
+
+from netlab import naming, shaping
+from netlab.doctor import capabilities
+from netlab.errors import NetlabError
+from netlab.medium import Medium
+from netlab.mobility import MobilityModel, walk
+from netlab.ranges import Links, Pos, Topology, with_link_loss
+from netlab.robots import Robot, RobotRef
+from netlab.shaping import LinkShape
+
+
+class LabMedium:
+    """The medium of a `Lab` (a part of it: it needs the lab's robots and state)."""
+
+    topology: Topology
+    medium: Medium
+    _state: str
+    _batch: int
+    _robots: dict[str, Robot]
+    _shapes: dict[str, LinkShape]
+    _nft_loss: dict[str, float]
+
+    if TYPE_CHECKING:
+
+        def robot(self, ref: RobotRef) -> Robot: ...
+
+        def _check_up(self) -> None: ...
+
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[None]:
+        """Apply every medium change made in the body at once, at its end."""
+        self._batch += 1
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            self._batch -= 1
+            if self._batch == 0 and self._state == "up":
+                if ok:
+                    self._apply_medium()
+                else:
+                    with contextlib.suppress(NetlabError):
+                        self._apply_medium()
+
+    def _changed(self) -> None:
+        if self._batch == 0:
+            self._apply_medium()
+
+    def _apply_medium(self) -> None:
+        links = with_link_loss(self.topology.links(), self._nft_loss)
+        self.medium.load(links, {r.name: r.port for r in self._robots.values()})
+
+    def links(self) -> Links:
+        """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
+
+        Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
+        """
+        link_loss = {name: shape.loss for name, shape in self._shapes.items()}
+        return with_link_loss(self.topology.links(), link_loss)
+
+    def neighbours(self, ref: RobotRef) -> set[str]:
+        """The robots `ref` hears now (ground truth)."""
+        name = self.robot(ref).name
+        return {a for (a, b) in self.links() if b == name}
+
+    def positions(self) -> dict[str, Pos]:
+        return dict(self.topology.positions)
+
+    def move(self, ref: RobotRef, pos: Pos) -> None:
+        self._check_up()
+        self.topology.move(self.robot(ref).name, pos)
+        self._changed()
+
+    def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
+        """Cut every link between `groups` (robots in none form one more group)."""
+        self._check_up()
+        self.topology.partition([[self.robot(r).name for r in g] for g in groups])
+        self._changed()
+
+    def merge(self) -> None:
+        """End the partition."""
+        self._check_up()
+        self.topology.merge()
+        self._changed()
+
+    def set_pair_quality(
+        self, a: RobotRef, b: RobotRef, *, loss: float | None, both: bool = True
+    ) -> None:
+        """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
+        self._check_up()
+        self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
+        self._changed()
+
+    def run_mobility(
+        self,
+        model: MobilityModel,
+        duration: float,
+        step: float = 0.5,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> list[tuple[float, Links]]:
+        """Move the model's robots every `step` seconds for `duration`; the links at each step."""
+        self._check_up()
+        for name in model.robots:
+            self.robot(name)
+        timeline: list[tuple[float, Links]] = []
+
+        def apply(t: float, positions: dict[str, Pos]) -> None:
+            with self.batch():
+                for name, pos in positions.items():
+                    self.topology.move(name, pos)
+            timeline.append((t, self.links()))
+
+        walk(model, duration, step, apply, clock=clock, sleep=sleep)
+        return timeline
+
+    # -- shaping -------------------------------------------------------------------------
+
+    def shape(self, ref: RobotRef, **params: Any) -> LinkShape:
+        """Shape the robot's link (both directions); no parameters removes all shaping.
+
+        delay/jitter in ms, loss/duplicate/reorder/corrupt in %, rate in bit/s or
+        '1mbit'. Raises ShapingUnsupported, before changing anything, for what this
+        kernel cannot do.
+        """
+        self._check_up()
+        robot = self.robot(ref)
+        shape = LinkShape.of(**params)
+        plan = shaping.plan(shape, capabilities())
+        shaping.apply_in_ns(robot.ns, naming.ROBOT_IFACE, plan, f"eth0 of {robot.name}")
+        shaping.apply(
+            self.medium.ipr, self.medium.ifindex(robot.port), plan, f"the air port of {robot.name}"
+        )
+        self._shapes[robot.name] = shape
+        if plan.nft_loss:
+            self._nft_loss[robot.name] = plan.nft_loss
+        else:
+            self._nft_loss.pop(robot.name, None)
+        self._changed()
+        return shape
+
+    def shape_of(self, ref: RobotRef) -> LinkShape:
+        return self._shapes.get(self.robot(ref).name, LinkShape())
