@@ -1,5 +1,5 @@
-"""An asyncio client of sdfrd's REST API, on aiohttp: the calls of `sdfr.client.Client`, and
-live changes in the zeroconf style.
+"""An asyncio client of sdfrd's REST API, on aiohttp (the `aio` extra): the methods of
+`sdfr.client.Client`, and live changes in the zeroconf style.
 
     async with AsyncClient() as sdfr:                       # 127.0.0.1:8700
         await sdfr.publish("front camera", "camera/rgb", attributes={"fps": 30})
@@ -7,44 +7,30 @@ live changes in the zeroconf style.
             async for change in sdfr.watch(["robot"]):
                 print(change.event, change.robot_id)
 
-Both clients are made of the call definitions of `sdfr.calls`: only the transport differs.
+Both clients are `sdfr.clientcore.Api` (every call written once, in `sdfr.calls`): only the
+transport differs.
 """
 
 from __future__ import annotations
 
 import asyncio
-import base64
 import contextlib
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping, Sequence
-from pathlib import Path
+from collections.abc import AsyncIterator, Generator
 from types import TracebackType
 from typing import Any, TypeVar
 
-import aiohttp
-
-from sdfr import calls
-from sdfr.calls import (
-    RENEW_EVERY,
-    RETRY_DELAYS,
-    STREAM_HEADERS,
-    STREAM_IDLE,
-    Call,
-    Change,
-    EventsPage,
-    Health,
-    JsonObject,
-    Published,
-    Renewed,
-    SseParser,
-    new_owner_token,
-    new_service_id,
-    request_headers,
-    service_body,
-    split_api,
-)
-from sdfr.config import DEFAULT_API
+from sdfr import DIST_NAME, calls
+from sdfr.calls import STREAM_IDLE, Call, Change
+from sdfr.clientcore import Api, AsyncTransport, Lease, LeaseKeeping, Plan, Stepper, Watch, attempts
 from sdfr.errors import ApiError
-from sdfr.model import AttrValue
+
+try:
+    import aiohttp
+except ImportError as exc:  # pragma: no cover (the dev extra installs it)
+    raise ImportError(
+        f"sdfr.aio needs aiohttp, which is not installed: pip install '{DIST_NAME}[aio]'",
+        name=exc.name,
+    ) from exc
 
 T = TypeVar("T")
 
@@ -61,37 +47,23 @@ def _reason(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
-class AsyncClient:
+#: What aiohttp raises when sdfrd cannot be reached or the connection breaks.
+_BROKEN = (aiohttp.ClientError, OSError, asyncio.TimeoutError)
+
+
+class AsyncClient(Api, AsyncTransport["AsyncKeptLease"]):
     """sdfrd's REST API for asyncio; every method raises ApiError (status 0: the daemon was
     not reached). One aiohttp session per client; close it (or use `async with`)."""
 
-    def __init__(
-        self,
-        api: str = DEFAULT_API,
-        *,
-        unix_socket: str | Path | None = None,
-        timeout: float = 5.0,
-        retry_delays: Sequence[float] = RETRY_DELAYS,
-        owner_token: str | None = None,
-        api_token: str | None = None,
-    ) -> None:
-        self.api = api
-        self.timeout = timeout
-        self.retry_delays = tuple(retry_delays)
-        #: What this client publishes belongs to this token (see `sdfr.client.Client`).
-        self.owner_token = owner_token or new_owner_token()
-        self.api_token = api_token
-        self._unix = None if unix_socket is None else str(unix_socket)
-        if self._unix is not None:
-            self.where = self._unix
-            self._base = "http://localhost"
-        else:
-            host, port = split_api(api)
-            self.where = f"{host}:{port}"
-            self._base = f"http://{host if ':' not in host else f'[{host}]'}:{port}"
-        self._session: aiohttp.ClientSession | None = None
+    _session: aiohttp.ClientSession | None = None
 
     # -- plumbing ----------------------------------------------------------------------------
+
+    def _base(self) -> str:
+        if self._unix is not None:
+            return "http://localhost"
+        host = self._host if ":" not in self._host else f"[{self._host}]"
+        return f"http://{host}:{self._port}"
 
     def _http(self) -> aiohttp.ClientSession:
         if self._session is None:
@@ -117,217 +89,97 @@ class AsyncClient:
     ) -> None:
         await self.close()
 
-    def _unreachable(self, exc: BaseException) -> ApiError:
-        return calls.unreachable(self.where, _reason(exc), self._unix is not None)
-
-    async def _exchange(self, call: Call[Any]) -> tuple[int, str, bytes]:
-        headers = request_headers(self.owner_token, self.api_token)
+    async def _send(self, call: Call[T]) -> T:
         try:
             async with self._http().request(
-                call.method, self._base + call.path, json=call.body, headers=headers
+                call.method, self._base() + call.path, json=call.body, headers=self._headers()
             ) as resp:
-                return resp.status, resp.headers.get("Content-Type", ""), await resp.read()
-        except (aiohttp.ClientError, OSError, asyncio.TimeoutError) as exc:
-            raise self._unreachable(exc) from None
+                status, ctype = resp.status, resp.headers.get("Content-Type", "")
+                data = await resp.read()
+        except _BROKEN as exc:
+            raise self._unreachable(_reason(exc)) from None
+        return calls.answer(call, status, ctype, data)
+
+    async def _run(self, plan: Plan[T]) -> T:
+        run = Stepper(plan)
+        while run.effect is not None:
+            if not isinstance(run.effect, Call):
+                await asyncio.sleep(run.effect)
+                run.give(None)
+                continue
+            try:
+                value = await self._send(run.effect)
+            except ApiError as exc:
+                run.fail(exc)
+                continue
+            run.give(value)
+        return run.result
 
     async def call(self, call: Call[T]) -> T:
         """Carry out one call of `sdfr.calls` (as `Client.call`)."""
-        delays = self.retry_delays if call.retry_unreachable else ()
-        for delay in (*delays, None):
-            try:
-                status, ctype, data = await self._exchange(call)
-            except ApiError:
-                if delay is None:
-                    raise
-                await asyncio.sleep(delay)
-                continue
-            return calls.answer(call, status, ctype, data)
-        raise AssertionError("unreachable")
+        return await self._run(attempts(call, self.retry_delays))
 
-    async def request(
-        self, method: str, path: str, body: Any = None, *, accept: tuple[int, ...] = ()
-    ) -> Any:
-        """One call of any path: the decoded JSON answer (None when empty)."""
-        return await self.call(Call(method, path, lambda answer: answer, body, accept))
+    def _carry(self, made: Any) -> Any:
+        if isinstance(made, Call):
+            return self.call(made)
+        if isinstance(made, Lease):
+            return AsyncKeptLease(self, made)
+        return self._follow(made)
 
-    # -- the API (as Client's) -----------------------------------------------------------------
-
-    async def publish(
-        self,
-        name: str,
-        type: str,
-        url: str | None = None,
-        attributes: Mapping[str, AttrValue] | None = None,
-        *,
-        service_id: str | None = None,
-        ttl: float | None = None,
-    ) -> str:
-        answer = await self.publish_service(
-            name, type, url, attributes, service_id=service_id, ttl=ttl
-        )
-        return answer["id"]
-
-    async def publish_service(
-        self,
-        name: str,
-        type: str,
-        url: str | None = None,
-        attributes: Mapping[str, AttrValue] | None = None,
-        *,
-        service_id: str | None = None,
-        ttl: float | None = None,
-    ) -> Published:
-        return await self.call(calls.publish(name, type, url, attributes, service_id, ttl))
-
-    async def unpublish(self, service_id: str) -> None:
-        await self.call(calls.unpublish(service_id))
-
-    async def service(self, service_id: str) -> Published:
-        return await self.call(calls.service(service_id))
-
-    async def renew(self, service_id: str, ttl: float | None = None) -> Renewed:
-        return await self.call(calls.renew(service_id, ttl))
-
-    def lease(
-        self,
-        name: str,
-        type: str,
-        url: str | None = None,
-        attributes: Mapping[str, AttrValue] | None = None,
-        *,
-        ttl: float,
-        service_id: str | None = None,
-    ) -> AsyncKeptLease:
-        """`async with client.lease(...) as kept:` publishes with a lease, renews it from a
-        task, and unpublishes at the end of the block."""
-        sid = service_id or new_service_id()
-        return AsyncKeptLease(self, service_body(name, type, url, attributes, sid, ttl), ttl)
-
-    async def services(self) -> list[JsonObject]:
-        return await self.call(calls.services())
-
-    async def neighbors(self, include_unreachable: bool = False) -> list[JsonObject]:
-        return await self.call(calls.neighbors(include_unreachable))
-
-    async def search(
-        self,
-        type: str | None = None,
-        attrs: Mapping[str, AttrValue] | None = None,
-        **more_attrs: AttrValue,
-    ) -> list[JsonObject]:
-        return await self.call(calls.search(type, {**(attrs or {}), **more_attrs}))
-
-    async def history(self) -> list[JsonObject]:
-        return await self.call(calls.history())
-
-    async def self_info(self) -> JsonObject:
-        return await self.call(calls.self_info())
-
-    async def health(self) -> Health:
-        return await self.call(calls.health())
-
-    async def metrics(self) -> str:
-        return await self.call(calls.metrics())
-
-    async def events(self, since: int | None = 0, kinds: Iterable[str] | None = None) -> EventsPage:
-        return await self.call(calls.events(since, kinds))
-
-    async def watch(
-        self,
-        kinds: Iterable[str] | None = None,
-        since: int | None = None,
-        *,
-        reconnect: bool = True,
-        on_open: Callable[[], object] | None = None,
-    ) -> AsyncIterator[Change]:
-        """`async for change in client.watch(...)`: changes as they happen (see
-        `Client.watch`), resuming after the last one seen when the stream breaks; `on_open`
-        is called each time the stream is (re)opened."""
-        cursor = since
-        kinds = list(kinds or ())
-        first = True
-        delay = 0.2
+    async def _follow(self, watch: Watch) -> AsyncIterator[Change]:
         timeout = aiohttp.ClientTimeout(total=None, sock_read=STREAM_IDLE, connect=self.timeout)
+        url = self._base() + watch.path
         while True:
-            headers = {**request_headers(self.owner_token, self.api_token), **STREAM_HEADERS}
-            if cursor is not None:
-                headers["Last-Event-ID"] = str(cursor)
             try:
-                url = self._base + calls.events_path(None, kinds)
+                headers = watch.headers(self._headers())
                 async with self._http().get(url, headers=headers, timeout=timeout) as resp:
                     if resp.status != 200:
-                        calls.answer(
-                            calls.events(),
-                            resp.status,
-                            resp.headers.get("Content-Type", ""),
-                            await resp.read(),
-                        )
-                    first = False
-                    if on_open is not None:
-                        on_open()
-                    parser = SseParser()
+                        ctype = resp.headers.get("Content-Type", "")
+                        watch.refused(resp.status, ctype, await resp.read())
+                    watch.opened()
                     while raw := await resp.content.readline():
-                        done = parser.feed(raw.decode("utf-8", errors="replace").rstrip("\r\n"))
-                        if done is not None:
-                            change = calls.change(done[1])
-                            cursor = change.id
-                            delay = 0.2
+                        if (change := watch.line(raw)) is not None:
                             yield change
-            except (aiohttp.ClientError, OSError, asyncio.TimeoutError) as exc:
-                if first or not reconnect:
-                    raise self._unreachable(exc) from None
-            if not reconnect:
+            except _BROKEN as exc:
+                watch.broken(self._unreachable(_reason(exc)))
+            pause = watch.pause()
+            if pause is None:
                 return
-            await asyncio.sleep(delay)
-            delay = min(5.0, delay * 2)
-
-    async def keys(self) -> JsonObject:
-        return await self.call(calls.keys())
-
-    async def install_key(self, key: bytes) -> JsonObject:
-        return await self.call(calls.install_key(base64.b64encode(key).decode()))
-
-    async def use_key(self, key_id: str) -> JsonObject:
-        return await self.call(calls.use_key(key_id))
-
-    async def remove_key(self, key_id: str, open_fleet: bool = False) -> None:
-        await self.call(calls.remove_key(key_id, open_fleet))
-
-    async def set_key_mode(self, mode: str) -> JsonObject:
-        return await self.call(calls.set_key_mode(mode))
+            await asyncio.sleep(pause)
 
 
-class AsyncKeptLease:
-    """A registration with a lease renewed by a task (see `sdfr.client.KeptLease`)."""
+class AsyncKeptLease(LeaseKeeping):
+    """A registration with a lease (`AsyncClient.lease`), renewed by a task (see
+    `sdfr.client.KeptLease`). Published when awaited, which `async with` does:
+    `kept = await client.lease(...)` then `await kept.close()`, or
+    `async with client.lease(...) as kept:`."""
 
-    def __init__(self, client: AsyncClient, body: JsonObject, ttl: float) -> None:
-        self.id: str = body["id"]
-        self.ttl = ttl
+    def __init__(self, client: AsyncClient, lease: Lease) -> None:
+        super().__init__(lease)
         self._client = client
-        self._body = body
         self._task: asyncio.Task[None] | None = None
-        self.error: ApiError | None = None
-        self.renewals = 0
 
-    async def __aenter__(self) -> AsyncKeptLease:
-        await self._client.call(Call("POST", "/services", dict, self._body, (), True))
-        self._task = asyncio.get_running_loop().create_task(self._run())
+    async def _open(self) -> AsyncKeptLease:
+        if self._task is None:
+            await self._client.call(self.lease.publish)
+            self._task = asyncio.get_running_loop().create_task(self._keep())
         return self
 
-    async def _run(self) -> None:
+    def __await__(self) -> Generator[Any, None, AsyncKeptLease]:
+        return self._open().__await__()
+
+    async def __aenter__(self) -> AsyncKeptLease:
+        return await self._open()
+
+    async def _keep(self) -> None:
         while True:
-            await asyncio.sleep(self.ttl * RENEW_EVERY)
+            await asyncio.sleep(self.period)
             try:
-                try:
-                    await self._client.call(calls.renew(self.id))
-                except ApiError as exc:
-                    if exc.status != 404:
-                        raise
-                    await self._client.call(Call("POST", "/services", dict, self._body))
-                self.renewals += 1
-                self.error = None
+                await self._client._run(self.renewal())
             except ApiError as exc:
-                self.error = exc
+                self.renewed(exc)
+            else:
+                self.renewed()
 
     async def close(self) -> None:
         """Stop renewing and unpublish (quietly if it is gone already)."""
@@ -337,11 +189,7 @@ class AsyncKeptLease:
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
         self._task = None
-        try:
-            await self._client.call(calls.unpublish(self.id))
-        except ApiError as exc:
-            if exc.status != 404:
-                raise
+        await self._client._run(self.withdrawal())
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()

@@ -9,19 +9,24 @@ Server-Sent Events with the functions here. No I/O here.
 
 from __future__ import annotations
 
+import base64
+import functools
 import json
 import secrets
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypedDict, TypeVar, cast
+from typing import Annotated, Any, Generic, ParamSpec, TypedDict, TypeVar, cast
 from urllib.parse import quote, urlencode
 
-from sdfr.config import DEFAULT_API
+from sdfr import schema
+from sdfr.endpoints import DEFAULT_API
+from sdfr.endpoints import OWNER_HEADER as OWNER_HEADER  # (where `sdfr.cli` takes it)
 from sdfr.errors import ApiError
 from sdfr.model import AttrValue, attr_text
 
 T = TypeVar("T")
-JsonObject = dict[str, Any]
+P = ParamSpec("P")
+JsonObject = schema.JsonObject
 
 #: Pauses before sending a publish again when sdfrd could not be reached (it may restart).
 RETRY_DELAYS = (0.2, 1.0)
@@ -30,80 +35,21 @@ RENEW_EVERY = 1 / 3
 #: An event stream is given up as dead after this long without a byte (sdfrd sends a
 #: keep-alive comment every 15 s).
 STREAM_IDLE = 45.0
-#: The header a client sends its owner token in: what it publishes is its own, and only
-#: a request with the same token (or, on the unix socket, by the same user) may unpublish,
-#: renew, hold or publish it again.
-OWNER_HEADER = "X-SDFR-Owner"
 
 
-# -- the answers, typed -------------------------------------------------------------------------
-# (neighbors, search, history and services answer plain dicts, as they always did, so that code
-# typed against them keeps checking; these TypedDicts describe them for a `cast`.)
+# -- the answers, typed ------------------------------------------------------------------------
+# Answers are the records of `sdfr.schema` as decoded JSON objects: each is typed as a dict
+# annotated with the record it keeps to.
 
-
-class ServiceJson(TypedDict):
-    id: str
-    name: str
-    type: str
-    url: str | None
-    attributes: dict[str, AttrValue]
-
-
-class LocalServiceJson(ServiceJson):
-    ttl: float | None
-    expires: float | None
-
-
-class Published(TypedDict):
-    id: str
-    service: ServiceJson
-    version: int
-    ttl: float | None
-    expires: float | None
-    #: The token the service belongs to (the one the client sent; null in GET /services/ID).
-    owner_token: str | None
-
-
-class Renewed(TypedDict):
-    id: str
-    ttl: float
-    expires: float
-
-
-class Neighbor(TypedDict):
-    robot_id: str
-    address: str
-    reachable: bool
-    indicator: float | None
-    rtt_ms: float | None
-    last_seen: float
-    services: list[ServiceJson]
-
-
-class PeerJson(TypedDict):
-    robot_id: str
-    address: str
-    location: str
-    reachable: bool
-    indicator: float | None
-    rtt_ms: float | None
-    boot_id: int
-    version: int
-    first_seen: float
-    last_seen: float
-    services: list[ServiceJson]
-
-
-class Health(TypedDict):
-    status: str
-    api: str
-    discovery: str
-    discovery_heartbeat_age: float | None
-    discovery_error: str | None
-    state: str
-    state_error: str | None
-    auth: str | None
-    warnings: list[str]
+ServiceJson = Annotated[JsonObject, schema.ServiceOutput]
+PublishedJson = Annotated[JsonObject, schema.Published]
+RenewedJson = Annotated[JsonObject, schema.Renewed]
+LocalServiceJson = Annotated[JsonObject, schema.LocalService]
+NeighborJson = Annotated[JsonObject, schema.Neighbor]
+PeerJson = Annotated[JsonObject, schema.PeerJson]
+SelfJson = Annotated[JsonObject, schema.Self]
+HealthJson = Annotated[JsonObject, schema.Health]
+KeysJson = Annotated[JsonObject, schema.Keys]
 
 
 @dataclass(frozen=True, slots=True)
@@ -211,80 +157,120 @@ def events_path(since: int | None = None, kinds: Iterable[str] | None = None) ->
     return "/events" + ("?" + urlencode(query) if query else "")
 
 
-def service_body(
+# Each call below is a method of both clients (`sdfr.clientcore.Api`): its signature and
+# docstring are the method's.
+
+
+def request(method: str, path: str, body: Any = None, *, accept: tuple[int, ...] = ()) -> Call[Any]:
+    """One call of any path: the decoded JSON answer (None when empty); errors raise
+    ApiError. `accept` lists error statuses whose body is returned instead."""
+    return Call(method, path, _whole, body, accept)
+
+
+def publish_service(
     name: str,
     type: str,
     url: str | None = None,
     attributes: Mapping[str, AttrValue] | None = None,
+    *,
     service_id: str | None = None,
     ttl: float | None = None,
-) -> JsonObject:
-    body: JsonObject = {"name": name, "type": type}
-    if service_id is not None:
-        body["id"] = service_id
+) -> Call[PublishedJson]:
+    """Publish a service of this robot; the daemon's answer (id, service, version, ttl,
+    expires).
+
+    The id is chosen here (`service_id`, or a fresh one) and sent with the service, so the
+    publish is idempotent: when the daemon cannot be reached or the answer is lost, it is
+    sent again, and a daemon that stored it already answers 200 instead of storing it
+    twice. With `ttl` (seconds) it is a lease: renew it (`renew`), or let `lease` do it.
+    """
+    body: JsonObject = {"name": name, "type": type, "id": service_id or new_service_id()}
     if url is not None:
         body["url"] = url
     if attributes is not None:
         body["attributes"] = dict(attributes)
     if ttl is not None:
         body["ttl"] = ttl
-    return body
-
-
-def publish(
-    name: str,
-    type: str,
-    url: str | None = None,
-    attributes: Mapping[str, AttrValue] | None = None,
-    service_id: str | None = None,
-    ttl: float | None = None,
-) -> Call[Published]:
-    """The id is chosen here (or given), so the call is sent again when sdfrd was not reached:
-    a daemon that stored it already answers 200 instead of storing it twice."""
-    body = service_body(name, type, url, attributes, service_id or new_service_id(), ttl)
     return Call("POST", "/services", _whole, body, retry_unreachable=True)
 
 
+def _answering_id(make: Callable[P, Call[PublishedJson]]) -> Callable[P, Call[str]]:
+    @functools.wraps(make)
+    def call(*args: P.args, **kwargs: P.kwargs) -> Call[str]:
+        made = make(*args, **kwargs)
+        read = _field("id", made.method, made.path)
+        return Call(made.method, made.path, read, made.body, made.accept, made.retry_unreachable)
+
+    call.__name__ = call.__qualname__ = "publish"
+    call.__doc__ = "Publish a service of this robot; returns its id (see `publish_service`)."
+    return call
+
+
+publish = _answering_id(publish_service)
+
+
 def unpublish(service_id: str) -> Call[None]:
+    """Withdraw a service of this robot (only its owner may)."""
     return Call("DELETE", service_path(service_id), _nothing)
 
 
-def service(service_id: str) -> Call[Published]:
+def service(service_id: str) -> Call[PublishedJson]:
+    """One of this robot's registrations, with its lease."""
     return Call("GET", service_path(service_id), _whole)
 
 
-def renew(service_id: str, ttl: float | None = None) -> Call[Renewed]:
+def renew(service_id: str, ttl: float | None = None) -> Call[RenewedJson]:
+    """Renew a lease: it runs its ttl (or `ttl`) from now again."""
     body = None if ttl is None else {"ttl": ttl}
     return Call("POST", service_path(service_id) + "/renew", _whole, body)
 
 
-def services() -> Call[list[JsonObject]]:
+def services() -> Call[list[LocalServiceJson]]:
+    """This robot's registrations (with their leases' ttl and end)."""
     return Call("GET", "/services", _field("services", "GET", "/services"))
 
 
-def neighbors(include_unreachable: bool = False) -> Call[list[JsonObject]]:
+def neighbors(include_unreachable: bool = False) -> Call[list[NeighborJson]]:
+    """The robots reachable now (with `include_unreachable`, all of the history map)."""
     path = neighbors_path(include_unreachable)
     return Call("GET", path, _field("neighbors", "GET", path))
 
 
-def search(type: str | None, attrs: Mapping[str, AttrValue]) -> Call[list[JsonObject]]:
-    path = search_path(type, attrs)
+def search(
+    type: str | None = None,
+    attrs: Mapping[str, AttrValue] | None = None,
+    **more_attrs: AttrValue,
+) -> Call[list[NeighborJson]]:
+    """Reachable robots with a service of `type` whose attributes match the given ones
+    (numbers by value, booleans as true/false, text exactly).
+
+    Each robot lists only its matching services. Attributes as keywords
+    (`search("camera", fps=30)`) or, for any key, as `attrs={"frame-rate": 30}`.
+    """
+    path = search_path(type, {**(attrs or {}), **more_attrs})
     return Call("GET", path, _field("neighbors", "GET", path))
 
 
-def history() -> Call[list[JsonObject]]:
+def history() -> Call[list[PeerJson]]:
+    """Every robot ever seen, reachable or not."""
     return Call("GET", "/history", _field("robots", "GET", "/history"))
 
 
-def self_info() -> Call[JsonObject]:
+def self_info() -> Call[SelfJson]:
+    """This robot: its id, address, services and its discovery layer's state."""
     return Call("GET", "/self", _whole)
 
 
-def health() -> Call[Health]:
+def health() -> Call[HealthJson]:
+    """The daemon's health (`sdfr.schema.Health`), also when it answers 503: `status` is
+    "ok", "warning" (up, with `warnings`) or "degraded" (HTTP 503: the discovery layer is
+    down, starting or failing, or the state directory cannot be written); `discovery` is
+    "up", "starting", "failing" or "down"; `state` is "ok", "full", "read-only" or "error"."""
     return Call("GET", "/health", _whole, accept=(503,))
 
 
 def metrics() -> Call[str]:
+    """The Prometheus text of GET /metrics."""
     return Call("GET", "/metrics", str)
 
 
@@ -298,20 +284,28 @@ def _page(answer: Any) -> EventsPage:
 
 
 def events(since: int | None = 0, kinds: Iterable[str] | None = None) -> Call[EventsPage]:
-    """The events kept after `since`, at once (a page: ask again from `last_id`); with
-    `since` None none, and `last_id` is the newest (where to start watching from)."""
+    """The changes kept after `since` (0: all of them), at once; ask again from `last_id`
+    (with `since` None: none, and `last_id` is the newest, where to start watching from).
+    `kinds`: only these (e.g. `["robot.appeared", "service"]`)."""
     return Call("GET", events_path(since, kinds), _page)
 
 
-def keys() -> Call[JsonObject]:
+# -- the fleet keyring (over the unix socket only) ---------------------------------------------
+
+
+def keys() -> Call[KeysJson]:
+    """The keyring: mode, the key that signs, and per key its id (never the key)."""
     return Call("GET", "/keys", _whole)
 
 
-def install_key(key_b64: str) -> Call[JsonObject]:
-    return Call("POST", "/keys", _whole, {"key": key_b64})
+def install_key(key: bytes) -> Call[JsonObject]:
+    """Accept `key` from now on (and, for a robot that had no key, sign with it in mode
+    accept); the answer has its `id`."""
+    return Call("POST", "/keys", _whole, {"key": base64.b64encode(key).decode()})
 
 
 def use_key(key_id: str) -> Call[JsonObject]:
+    """Sign with the installed key `key_id` from now on."""
     return Call("POST", f"/keys/{quote(key_id, safe='')}/use", _whole)
 
 
@@ -322,6 +316,7 @@ def remove_key(key_id: str, open_fleet: bool = False) -> Call[None]:
 
 
 def set_key_mode(mode: str) -> Call[JsonObject]:
+    """The keyring's mode: accept, sign or enforce."""
     return Call("PUT", "/keys/mode", _whole, {"mode": mode})
 
 
@@ -336,7 +331,11 @@ def split_api(api: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
-def unreachable(where: str, reason: str, unix: bool) -> ApiError:
+class Unreachable(ApiError):
+    """sdfrd could not be reached (status 0): nothing was sent, or no answer came."""
+
+
+def unreachable(where: str, reason: str, unix: bool) -> Unreachable:
     """sdfrd could not be reached: say what to check."""
     if unix:
         hint = (
@@ -348,7 +347,7 @@ def unreachable(where: str, reason: str, unix: bool) -> ApiError:
             "is sdfrd running (`systemctl status sdfrd`), and is this its `api` address "
             f"(--api HOST:PORT; default {DEFAULT_API})?"
         )
-    return ApiError(0, f"cannot reach sdfrd at {where}: {reason}; {hint}")
+    return Unreachable(0, f"cannot reach sdfrd at {where}: {reason}; {hint}")
 
 
 def answer(call: Call[T], status: int, content_type: str, data: bytes) -> T:

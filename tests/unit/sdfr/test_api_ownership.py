@@ -13,20 +13,16 @@ import os
 import socket
 import sqlite3
 import tempfile
-import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from sdfr.aio import AsyncClient
 from sdfr.api import Runner, TCPSite, UnixSite, create_app
 from sdfr.api.events import STREAMS_MAX
 from sdfr.cli import main as sdfr
-from sdfr.client import Client
 from sdfr.config import Config
-from sdfr.errors import ApiError
 from sdfr.ros.core import Bridge, ServiceRequest
 from sdfr.ros.params import NodeParams
 from sdfr.store import Store
@@ -319,42 +315,6 @@ async def test_one_client_cannot_take_every_event_stream(
 
 
 # (`layer`: the API layer as a process, tests/unit/sdfr/conftest.py.)
-
-
-def test_each_client_is_a_program_of_its_own(layer: ApiLayer) -> None:
-    with Client(layer.api) as mine, Client(layer.api) as other:
-        sid = mine.publish("arm", "manipulator", ttl=30)
-        assert other.service(sid)["id"] == sid  # anyone may read it
-        for attempt in (lambda: other.unpublish(sid), lambda: other.renew(sid)):
-            with pytest.raises(ApiError) as err:
-                attempt()
-            assert err.value.status == 403 and err.value.field == OWNER
-        mine.renew(sid)
-        # A program that keeps its token (e.g. in a file) is the owner again after a restart.
-        again = Client(layer.api, owner_token=mine.owner_token)
-        with again:
-            again.unpublish(sid)
-        with mine.lease("gripper", "actuator/gripper", ttl=1.0) as kept:
-            time.sleep(1.2)  # renewed by its own thread, with the token
-            assert kept.renewals >= 2 and kept.error is None
-            with pytest.raises(ApiError) as err:
-                other.unpublish(kept.id)
-            assert err.value.status == 403
-        assert mine.services() == []
-
-
-@aio
-async def test_each_async_client_is_a_program_of_its_own(layer: ApiLayer) -> None:
-    async with AsyncClient(layer.api) as mine, AsyncClient(layer.api) as other:
-        sid = await mine.publish("arm", "manipulator")
-        with pytest.raises(ApiError) as err:
-            await other.unpublish(sid)
-        assert err.value.status == 403 and err.value.field == OWNER
-        await mine.unpublish(sid)
-        async with mine.lease("gripper", "actuator/gripper", ttl=1.0) as kept:
-            await asyncio.sleep(1.2)
-            assert kept.renewals >= 2 and kept.error is None
-        assert await mine.services() == []
 
 
 def test_the_cli_remembers_its_token(

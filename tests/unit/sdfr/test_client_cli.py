@@ -10,7 +10,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -74,58 +73,6 @@ def write_healthy_status(state_dir: Path, **extra: object) -> None:
 
 
 # -- the Python client -------------------------------------------------------------------------
-
-
-def test_client_over_tcp_and_unix_socket(layer: ApiLayer) -> None:
-    save_fleet(layer.state_dir)
-    with (
-        Client(layer.api) as tcp,
-        Client(unix_socket=layer.socket) as unix,
-    ):
-        sid = tcp.publish("arm", "manipulator", url="ros://arm", attributes={"dof": 6})
-        assert [s["id"] for s in unix.services()] == [sid]
-        assert unix.services()[0]["attributes"] == {"dof": 6}
-
-        for client in (tcp, unix):
-            assert [n["robot_id"] for n in client.neighbors()] == ["atlas", "bee"]
-            assert len(client.neighbors(include_unreachable=True)) == 3
-            assert [h["robot_id"] for h in client.history()] == ["atlas", "bee", "gone"]
-            found = client.search("camera/rgb", fps=30)
-            assert [(n["robot_id"], [s["id"] for s in n["services"]]) for n in found] == [
-                ("atlas", ["c1"])
-            ]
-            assert [n["robot_id"] for n in client.search(attrs={"frame-rate": 30})] == ["atlas"]
-            assert [n["robot_id"] for n in client.search("lidar")] == ["atlas"]
-            me = client.self_info()
-            assert me["robot_id"] == "r1" and me["discovery"]["up"] is False
-            health = client.health()  # 503: the body all the same
-            assert health["status"] == "degraded" and health["api"] == "up"
-            assert "sdfr_local_services 1" in client.metrics()
-
-        with pytest.raises(ApiError) as err:
-            tcp.publish("", "manipulator")
-        assert (err.value.status, err.value.field) == (422, "name")
-        with pytest.raises(ApiError) as err:
-            unix.request("GET", "/neighbors?x=1")
-        assert (err.value.status, err.value.field) == (422, "x")
-
-        unix.unpublish(sid)
-        assert tcp.services() == []
-        with pytest.raises(ApiError) as err:
-            tcp.unpublish(sid)
-        assert err.value.status == 404
-
-
-def test_client_reports_an_unreachable_daemon(tmp_path: Path) -> None:
-    port = free_port()
-    with pytest.raises(ApiError) as err:
-        Client(f"127.0.0.1:{port}").services()
-    assert err.value.status == 0
-    assert str(err.value).startswith(f"cannot reach sdfrd at 127.0.0.1:{port}: ")
-    with pytest.raises(ApiError) as err:
-        Client(unix_socket=tmp_path / "api.sock").health()
-    assert err.value.status == 0
-    assert str(tmp_path / "api.sock") in str(err.value)
 
 
 def test_registrations_survive_a_killed_api_layer(layer: ApiLayer) -> None:
@@ -356,36 +303,6 @@ def test_cli_keys_generate_and_manage_a_running_daemon(
     assert keystore.load_keyring(layer.state_dir) == Keyring.of(
         [keystore.read_key_file(k2)], mode="enforce"
     )
-
-
-def test_a_publish_whose_answer_was_lost_is_sent_again_and_stored_once(
-    layer: ApiLayer, tmp_path: Path
-) -> None:
-    with Client(layer.api) as client:
-        sid = client.publish("lidar", "sensor.lidar")
-        assert [s["id"] for s in client.services()] == [sid]  # the client chose the id
-        # The same publish again (its answer lost, sdfrd restarted meanwhile): stored once.
-        layer.kill()
-        layer.start()
-        again = client.publish_service("lidar", "sensor.lidar", service_id=sid)
-        assert again["id"] == sid and len(client.services()) == 1
-        with pytest.raises(ApiError) as err:
-            client.publish("another", "sensor.lidar", service_id=sid)
-        assert err.value.status == 409 and err.value.field == "id"
-
-
-def test_a_publish_waits_a_moment_for_sdfrd(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """sdfrd is not answering when the publish starts (restarting): the client tries again."""
-    api = ApiLayer(tmp_path_factory.mktemp("late"))
-    started = threading.Timer(0.05, api.start)
-    with Client(unix_socket=api.socket, timeout=2.0, retry_delays=(0.5, 1, 2, 4, 8)) as client:
-        started.start()
-        try:
-            sid = client.publish("arm", "manipulator")
-            assert [s["id"] for s in client.services()] == [sid]
-        finally:
-            started.join()
-            api.stop()
 
 
 def test_cli_keys_generate_force_replaces_the_key(
