@@ -78,10 +78,8 @@ def options_config(options: Mapping[str, Any]) -> Config:
     values: dict[str, Any] = {}
     for name, raw in options.items():
         if name not in OPTIONS:
-            raise ConfigError(
-                f"{name}: not an sdfrd option{did_you_mean(name, OPTIONS)} "
-                f"(options: {', '.join(OPTIONS)})"
-            )
+            hint = did_you_mean(name, OPTIONS) or f" (options: {', '.join(OPTIONS)})"
+            raise ConfigError(f"{name}: not an sdfrd option{hint}")
         if raw is not None:
             values[name] = _coerce(name, raw)
     return replace(Config(), **values).validate()

@@ -8,7 +8,8 @@ Each field's value is read by its type (`BY_TYPE`) or by the converter its metad
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import re
+from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, Field, fields
 from pathlib import Path
 from typing import Any
@@ -33,8 +34,10 @@ from netlab.scenario.spec import (
     to_table,
     to_true,
 )
-from netlab.scenario.steps import STEPS, Check, Step
+from netlab.scenario.steps import STEPS, Check, Start, Step
 from sdfr._compat import tomllib  # (tomllib is 3.11+; SDfR runs on 3.10 too)
+from sdfr.config import options_config
+from sdfr.errors import ConfigError
 from sdfr.hints import did_you_mean
 
 BUNDLED_DIR = Path(__file__).parent.parent / "scenarios"
@@ -188,10 +191,58 @@ def _entries(table: Mapping[str, Any], conv: Conv, where: str) -> dict[str, Any]
     return out
 
 
+_HEADER_RE = re.compile(r"\s*\[(\[?)\s*([A-Za-z0-9_.-]+)\s*\]\]?\s*(#.*)?$")
+
+
+def _key_line(lines: Sequence[str], table: str, nth: int, key: str | None) -> int | None:
+    """The line (from 1) that sets `key` in the `nth` table `table` of a TOML file's `lines`
+    (its sub-tables, such as [step.options], included); the table's own line if none does
+    (or `key` is None); None if the file has no such table."""
+    seen, start, inside = 0, None, False
+    key_re = re.compile(rf"(^|[{{,\s])[\"']?{re.escape(key or '')}[\"']?\s*=")
+    for no, line in enumerate(lines, 1):
+        header = _HEADER_RE.match(line)
+        if header is not None:
+            name = header[2]
+            if name == table:
+                seen += 1
+                inside = seen == nth
+                start = no if inside else start
+            elif not name.startswith(f"{table}."):
+                inside = False
+        elif inside and key is not None and key_re.search(line.split("#")[0]):
+            return no
+    return start
+
+
+def _check_daemon_options(sc: Scenario, source: str, lines: Sequence[str]) -> None:
+    """ScenarioError, with the file's line, unless sdfrd takes the [sdfrd] options, and each
+    start step's on top of them, as a Config: a mistyped option is found when the file
+    loads (with the closest one), not when a daemon starts."""
+    checks = [("[sdfrd]", "sdfrd", 1, dict(sc.sdfrd), dict(sc.sdfrd))]
+    for i, step in enumerate(sc.steps, 1):
+        if isinstance(step, Start) and step.options:
+            own = dict(step.options)
+            checks.append((f"step {i} (start): options", "step", i, own, {**sc.sdfrd, **own}))
+    for where, table, nth, own, options in checks:
+        try:
+            options_config(options)
+        except ConfigError as exc:
+            key = str(exc).partition(":")[0]
+            line = _key_line(lines, table, nth, key if key in own else None)
+            at = f"{source}:{line}" if line is not None else source
+            raise ScenarioError(f"{at}: {where}: {exc}") from None
+
+
 def from_dict(
-    data: Mapping[str, Any], source: str = "<scenario>", name: str | None = None
+    data: Mapping[str, Any],
+    source: str = "<scenario>",
+    name: str | None = None,
+    *,
+    lines: Sequence[str] = (),
 ) -> Scenario:
-    """A Scenario from a parsed scenario file (see the package's documentation)."""
+    """A Scenario from a parsed scenario file (see the package's documentation); `lines`, the
+    file's, let an error say its line."""
     extra = [k for k in data if k not in TOP_LEVEL]
     if extra:
         hint = did_you_mean(extra[0], TOP_LEVEL)
@@ -206,7 +257,7 @@ def from_dict(
     raw_steps = data.get("step", [])
     if not isinstance(raw_steps, list):
         raise ScenarioError(f"{source}: steps are written as [[step]] tables")
-    return Scenario(
+    sc = Scenario(
         steps=[_parse_step(t, f"{source}: step {i}") for i, t in enumerate(raw_steps, 1)],
         groups=_entries(_table(data, "groups", source), to_names, f"{source}: [groups]"),
         positions=_entries(_table(data, "positions", source), to_pair, f"{source}: [positions]"),
@@ -215,6 +266,8 @@ def from_dict(
         source=source,
         **head,
     )
+    _check_daemon_options(sc, source, lines)
+    return sc
 
 
 def loads(text: str, source: str = "<scenario>", name: str | None = None) -> Scenario:
@@ -223,7 +276,7 @@ def loads(text: str, source: str = "<scenario>", name: str | None = None) -> Sce
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
-    return from_dict(data, source, name)
+    return from_dict(data, source, name, lines=text.splitlines())
 
 
 def load(path: Path | str) -> Scenario:
