@@ -13,7 +13,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from sdfr.ros import messages as conv
-from sdfr.ros.core import Bridge, BridgeError, Change, Diagnosis, Snapshot
+from sdfr.ros.core import Bridge, Change, Diagnosis
+from sdfr.ros.snapshot import BridgeError, Snapshot
 
 
 class NodeAdapter:

@@ -16,22 +16,41 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-import msgspec
-
 from sdfr.client import Client, user_owner_token
-from sdfr.errors import ApiError, SdfrError
+from sdfr.errors import ApiError
 from sdfr.model import (
-    Attributes,
     AttrValue,
     Service,
-    ServiceId,
-    ServiceName,
-    ServiceType,
-    ServiceUrl,
 )
 from sdfr.ros.params import NodeParams
+from sdfr.ros.snapshot import (
+    BridgeError,
+    Robot,
+    Snapshot,
+    robots_from_json,
+    services_from_json,
+)
 from sdfr.ros.source import ChangeSource, EventStreamSource, PollingSource
 from sdfr.ros.spawn import SpawnedDaemon, ensure_daemon, stop_daemon
+
+__all__ = [
+    "QUALITY_REFRESH",
+    "Bridge",
+    "BridgeError",
+    "Change",
+    "ChangeKind",
+    "Diagnosis",
+    "Level",
+    "Listing",
+    "Robot",
+    "ServiceRequest",
+    "Sink",
+    "Snapshot",
+    "diagnosis_of",
+    "diff",
+    "robots_from_json",
+    "services_from_json",
+]
 
 log = logging.getLogger("sdfr.ros")
 
@@ -40,38 +59,7 @@ log = logging.getLogger("sdfr.ros")
 QUALITY_REFRESH = 5.0
 
 
-class BridgeError(SdfrError):
-    """A request of a ROS client could not be carried out; the message says why."""
-
-
 # -- what the bridge hands out -------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class Robot:
-    """A robot as sdfrd lists it."""
-
-    robot_id: str
-    address: str
-    reachable: bool
-    indicator: float | None
-    rtt_ms: float | None
-    last_seen: float
-    services: tuple[Service, ...] = ()
-
-    def service_map(self) -> dict[str, Service]:
-        return {s.id: s for s in self.services}
-
-
-@dataclass(frozen=True, slots=True)
-class Snapshot:
-    """The neighbour list as read at `stamp` (seconds since the epoch)."""
-
-    stamp: float
-    robots: tuple[Robot, ...]
-
-    def by_id(self) -> dict[str, Robot]:
-        return {r.robot_id: r for r in self.robots}
 
 
 class ChangeKind(enum.IntEnum):
@@ -130,67 +118,6 @@ class Sink(Protocol):
     def changes(self, changes: Sequence[Change]) -> None: ...
 
     def diagnostics(self, diagnosis: Diagnosis) -> None: ...
-
-
-# -- the daemon's JSON -----------------------------------------------------------------------
-
-
-class _ServiceJson(msgspec.Struct):
-    """A service as the API shows it; fields a newer sdfrd adds (a lease's `ttl` and
-    `expires`) are ignored, as a client should."""
-
-    id: ServiceId
-    name: ServiceName
-    type: ServiceType
-    url: ServiceUrl | None
-    attributes: Attributes
-
-
-class _RobotJson(msgspec.Struct):
-    robot_id: str
-    address: str
-    reachable: bool
-    indicator: float | None
-    rtt_ms: float | None
-    last_seen: float
-    services: list[_ServiceJson]
-
-
-def _service(s: _ServiceJson) -> Service:
-    return Service(id=s.id, name=s.name, type=s.type, url=s.url, attributes=s.attributes)
-
-
-def robots_from_json(items: object, what: str = "neighbors") -> tuple[Robot, ...]:
-    """The daemon's robot list, checked; BridgeError naming what was wrong otherwise."""
-    try:
-        parsed = msgspec.convert(items, list[_RobotJson])
-    except msgspec.ValidationError as exc:
-        raise BridgeError(f"unexpected answer from sdfrd for {what}: {exc}") from None
-    return tuple(
-        Robot(
-            robot_id=r.robot_id,
-            address=r.address,
-            reachable=r.reachable,
-            indicator=r.indicator,
-            rtt_ms=r.rtt_ms,
-            last_seen=r.last_seen,
-            services=tuple(_service(s) for s in r.services),
-        )
-        for r in parsed
-    )
-
-
-def services_from_json(items: object) -> tuple[Service, ...]:
-    try:
-        parsed = msgspec.convert(items, list[_ServiceJson])
-    except msgspec.ValidationError as exc:
-        raise BridgeError(f"unexpected answer from sdfrd for services: {exc}") from None
-    return tuple(_service(s) for s in parsed)
-
-
-def read_snapshot(client: Client, clock: Callable[[], float] = time.time) -> Snapshot:
-    """The reachable robots now; ApiError when sdfrd cannot be read."""
-    return Snapshot(stamp=clock(), robots=robots_from_json(client.neighbors()))
 
 
 # -- changes ---------------------------------------------------------------------------------

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from sdfr.model import AttrValue, Service
-from sdfr.ros.core import BridgeError, Change, Diagnosis, Robot, ServiceRequest, Snapshot
+from sdfr.ros.core import BridgeError, Change, Diagnosis, ServiceRequest
+from sdfr.ros.snapshot import Robot, Snapshot
 
 # sdfr_msgs/Attribute's type constants
 STRING, INTEGER, DOUBLE, BOOL = 0, 1, 2, 3

@@ -1,8 +1,8 @@
 """Where the bridge learns that the neighbour list may have changed: the seam.
 
 A `ChangeSource` calls `deliver` with the neighbour list each time it may have changed; the
-bridge turns consecutive lists into change events (`core.diff`), so a source only has to
-say "here is the list now".
+bridge turns consecutive lists (`snapshot.Snapshot`) into change events (`core.diff`), so a
+source only has to say "here is the list now".
 
 * `EventStreamSource` (the bridge's default) follows sdfrd's change stream (`GET /events`,
   Server-Sent Events, the robot changes) and reads `GET /neighbors` again on each change,
@@ -18,13 +18,11 @@ import threading
 import time
 from collections.abc import Callable
 from http import HTTPStatus
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from sdfr.client import Client
 from sdfr.errors import ApiError, SdfrError
-
-if TYPE_CHECKING:
-    from sdfr.ros.core import Snapshot
+from sdfr.ros.snapshot import Snapshot, read_snapshot
 
 log = logging.getLogger("sdfr.ros")
 
@@ -44,8 +42,6 @@ class _Reader:
     last_error = ""
 
     def read(self, client: Client, deliver: Callable[[Snapshot], None]) -> None:
-        from sdfr.ros.core import read_snapshot
-
         try:
             snapshot = read_snapshot(client, self.clock)
         except (ApiError, SdfrError) as exc:

@@ -1,0 +1,87 @@
+"""What the bridge reads from sdfrd: the neighbour list as a `Snapshot` of `Robot`s, decoded
+from the API's records (`sdfr.schema`); the bridge (`core`) and the change sources
+(`source`) both take it from here."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import msgspec
+
+from sdfr.client import Client
+from sdfr.errors import SdfrError
+from sdfr.model import Service, ServiceOutput
+from sdfr.schema import LocalService, Neighbor
+
+
+class BridgeError(SdfrError):
+    """A request of a ROS client could not be carried out; the message says why."""
+
+
+@dataclass(frozen=True, slots=True)
+class Robot:
+    """A robot as sdfrd lists it."""
+
+    robot_id: str
+    address: str
+    reachable: bool
+    indicator: float | None
+    rtt_ms: float | None
+    last_seen: float
+    services: tuple[Service, ...] = ()
+
+    def service_map(self) -> dict[str, Service]:
+        return {s.id: s for s in self.services}
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """The neighbour list as read at `stamp` (seconds since the epoch)."""
+
+    stamp: float
+    robots: tuple[Robot, ...]
+
+    def by_id(self) -> dict[str, Robot]:
+        return {r.robot_id: r for r in self.robots}
+
+
+def _service(s: ServiceOutput) -> Service:
+    return Service(id=s.id, name=s.name, type=s.type, url=s.url, attributes=s.attributes)
+
+
+def robots_from_json(items: object, what: str = "neighbors") -> tuple[Robot, ...]:
+    """The daemon's robot list (`sdfr.schema.Neighbor`s), checked; BridgeError naming what
+    was wrong otherwise."""
+    try:
+        parsed = msgspec.convert(items, list[Neighbor])
+    except msgspec.ValidationError as exc:
+        raise BridgeError(f"unexpected answer from sdfrd for {what}: {exc}") from None
+    return tuple(
+        Robot(
+            robot_id=r.robot_id,
+            address=r.address,
+            reachable=r.reachable,
+            indicator=r.indicator,
+            rtt_ms=r.rtt_ms,
+            last_seen=r.last_seen,
+            services=tuple(_service(s) for s in r.services),
+        )
+        for r in parsed
+    )
+
+
+def services_from_json(items: object) -> tuple[Service, ...]:
+    """This robot's registrations (`sdfr.schema.LocalService`s) as services (a lease's `ttl`
+    and `expires` left out)."""
+    try:
+        parsed = msgspec.convert(items, list[LocalService])
+    except msgspec.ValidationError as exc:
+        raise BridgeError(f"unexpected answer from sdfrd for services: {exc}") from None
+    return tuple(_service(s) for s in parsed)
+
+
+def read_snapshot(client: Client, clock: Callable[[], float] = time.time) -> Snapshot:
+    """The reachable robots now; ApiError when sdfrd cannot be read."""
+    return Snapshot(stamp=clock(), robots=robots_from_json(client.neighbors()))
