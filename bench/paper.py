@@ -52,7 +52,9 @@ from bench.paper_lab import (
     captured,
     conditions,
     err,
+    has_root,
     keep_logs,
+    run_folder_options,
 )
 from bench.paper_measure import (
     FIVE_MINUTES_S,
@@ -387,12 +389,9 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="fleet sizes for the bytes-per-robot growth (default 2 6 20; --scale alone: skip)",
     )
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where the run folder goes")
-    p.add_argument("--out", type=Path, help="also write the result JSON here")
+    run_folder_options(p)
     args = p.parse_args(argv)
-    if os.geteuid() != 0:
-        err("bench-paper: needs root (it runs robots in network namespaces)")
+    if not has_root("bench-paper"):
         return 2
     if args.smoke:
         args.only = args.only or ["static-2-30", "dynamic-6-70"]

@@ -3,6 +3,7 @@ conditions, process-tree sampling and captures."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import shutil
@@ -34,6 +35,22 @@ def keep_logs(lab: Lab, folder: Path) -> None:
 
 def err(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
+
+
+def run_folder_options(p: argparse.ArgumentParser) -> None:
+    """The options of a bench that writes a run folder: the seed, where the folder goes, and a
+    copy of the result JSON."""
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where the run folder goes")
+    p.add_argument("--out", type=Path, help="also write the result JSON here")
+
+
+def has_root(prog: str) -> bool:
+    """Whether this process is root, as the labs' network namespaces need; says so if not."""
+    if os.geteuid() != 0:
+        err(f"{prog}: needs root (it runs robots in network namespaces)")
+        return False
+    return True
 
 
 def conditions() -> dict[str, Any]:

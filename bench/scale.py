@@ -173,6 +173,14 @@ def growth(sizes: list[dict[str, Any]], path: tuple[str, ...]) -> dict[str, Any]
     return out
 
 
+def label_axes(ax: Any, ylabel: str, title: str) -> None:
+    """One of the growth plots' panels: robots across, `ylabel` up, its title and legend."""
+    ax.set_xlabel("robots")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+
+
 def plot(res: dict[str, Any], where: Path) -> None:
     try:
         import matplotlib
@@ -193,10 +201,7 @@ def plot(res: dict[str, Any], where: Path) -> None:
     ax.plot(ns, tx, "o-", label="TX per robot")
     ax.plot(ns, rx, "s-", label="RX per robot")
     ax.plot(ns, [tx[0] * n / ns[0] for n in ns], ":", color="grey", label="TX, linear in n")
-    ax.set_xlabel("robots")
-    ax.set_ylabel("UDP payload bytes/s per robot")
-    ax.set_title("on the air (steady state)")
-    ax.legend(fontsize=8)
+    label_axes(ax, "UDP payload bytes/s per robot", "on the air (steady state)")
     ax = axes[1]
     kinds = sorted({k for s in sizes for k in s["air"]["datagrams_per_robot_per_s_by_type"]})
     for kind in kinds:
@@ -206,18 +211,12 @@ def plot(res: dict[str, Any], where: Path) -> None:
             "o-",
             label=kind,
         )
-    ax.set_xlabel("robots")
-    ax.set_ylabel("datagrams/s sent per robot")
-    ax.set_title("what each robot sends, by type")
-    ax.legend(fontsize=8)
+    label_axes(ax, "datagrams/s sent per robot", "what each robot sends, by type")
     ax = axes[2]
     cpu = [s.get("cpu_percent_per_daemon", {}).get("mean", 0.0) for s in sizes]
     ax.plot(ns, cpu, "o-", label="CPU per daemon (% of a core)")
     ax.plot(ns, [cpu[0] * n / ns[0] for n in ns], ":", color="grey", label="linear in n")
-    ax.set_xlabel("robots")
-    ax.set_ylabel("% of one core")
-    ax.set_title("CPU per daemon over the stay")
-    ax.legend(fontsize=8)
+    label_axes(ax, "% of one core", "CPU per daemon over the stay")
     load = ", ".join(f"{s['robots']}: {s['loadavg_before'][0]:.1f}" for s in sizes)
     fig.suptitle(
         f"sdfrd at the 10 s beacon, all robots in range, one 2-core machine "

@@ -48,7 +48,17 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, err, keep_logs
+from bench.paper_lab import (
+    ROOT,
+    SDFR_PORT,
+    Sampler,
+    captured,
+    conditions,
+    err,
+    has_root,
+    keep_logs,
+    run_folder_options,
+)
 from bench.paper_measure import (
     dig,
     mdns_messages,
@@ -565,12 +575,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--robots", type=int, help="robots (default: the timing's)")
     p.add_argument("--churn", type=float, help="seconds of churn (default: the timing's)")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where the run folder goes")
-    p.add_argument("--out", type=Path, help="also write the result JSON here")
+    run_folder_options(p)
     args = p.parse_args(argv)
-    if os.geteuid() != 0:
-        err("side-by-side: needs root (it runs robots in network namespaces)")
+    if not has_root("side-by-side"):
         return 2
     timing = SMOKE if args.smoke else QUICK if args.quick else FULL
     if args.robots is not None:
