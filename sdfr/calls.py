@@ -2,9 +2,11 @@
 
 Each API call is a function that returns a `Call`: the method, the path, the JSON body, the
 error statuses whose body is an answer, whether it may be sent again when sdfrd could not be
-reached, and how its answer becomes the result. The clients only carry calls over their
-transport (`http.client` in threads, aiohttp in asyncio), and both read answers, errors and
-Server-Sent Events with the functions here. No I/O here.
+reached, and how its answer becomes the result (a record of `sdfr.schema` as a JSON object).
+Each is a method of both clients (`sdfr.clientcore.Api`), with its signature and docstring;
+the clients only carry calls over their transport (`http.client` in threads, aiohttp in
+asyncio), and both read answers, errors and Server-Sent Events with the functions here.
+No I/O here.
 """
 
 from __future__ import annotations
@@ -155,10 +157,6 @@ def events_path(since: int | None = None, kinds: Iterable[str] | None = None) ->
     query: list[tuple[str, str]] = [] if since is None else [("since", str(since))]
     query += [("event", k) for k in kinds or ()]
     return "/events" + ("?" + urlencode(query) if query else "")
-
-
-# Each call below is a method of both clients (`sdfr.clientcore.Api`): its signature and
-# docstring are the method's.
 
 
 def request(method: str, path: str, body: Any = None, *, accept: tuple[int, ...] = ()) -> Call[Any]:
