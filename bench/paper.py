@@ -43,7 +43,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench import compile_sdfr, paper_figures
+from bench import compile_sdfr, paper_figures, paper_lab
 from bench.paper_lab import (
     ROOT,
     SAMPLE_EVERY_S,
@@ -52,9 +52,7 @@ from bench.paper_lab import (
     captured,
     conditions,
     err,
-    has_root,
     keep_logs,
-    run_folder_options,
 )
 from bench.paper_measure import (
     FIVE_MINUTES_S,
@@ -389,9 +387,9 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="fleet sizes for the bytes-per-robot growth (default 2 6 20; --scale alone: skip)",
     )
-    run_folder_options(p)
+    paper_lab.run_folder_options(p)
     args = p.parse_args(argv)
-    if not has_root("bench-paper"):
+    if not paper_lab.has_root("bench-paper"):
         return 2
     if args.smoke:
         args.only = args.only or ["static-2-30", "dynamic-6-70"]

@@ -48,17 +48,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench.paper_lab import (
-    ROOT,
-    SDFR_PORT,
-    Sampler,
-    captured,
-    conditions,
-    err,
-    has_root,
-    keep_logs,
-    run_folder_options,
-)
+from bench import paper_lab
+from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, err, keep_logs
 from bench.paper_measure import (
     dig,
     mdns_messages,
@@ -575,9 +566,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--robots", type=int, help="robots (default: the timing's)")
     p.add_argument("--churn", type=float, help="seconds of churn (default: the timing's)")
-    run_folder_options(p)
+    paper_lab.run_folder_options(p)
     args = p.parse_args(argv)
-    if not has_root("side-by-side"):
+    if not paper_lab.has_root("side-by-side"):
         return 2
     timing = SMOKE if args.smoke else QUICK if args.quick else FULL
     if args.robots is not None:
