@@ -19,18 +19,15 @@ from collections.abc import AsyncIterator, Generator
 from types import TracebackType
 from typing import Any, TypeVar
 
-from sdfr import DIST_NAME, calls
+from sdfr import calls, need_extra
 from sdfr.calls import STREAM_IDLE, Call, Change
 from sdfr.clientcore import Api, AsyncTransport, Lease, LeaseKeeping, Plan, Stepper, Watch, attempts
 from sdfr.errors import ApiError
 
 try:
     import aiohttp
-except ImportError as exc:  # pragma: no cover (the dev extra installs it)
-    raise ImportError(
-        f"sdfr.aio needs aiohttp, which is not installed: pip install '{DIST_NAME}[aio]'",
-        name=exc.name,
-    ) from exc
+except ImportError as exc:  # (the dev extra installs it)
+    raise ImportError(need_extra("aio", "sdfr.aio", "aiohttp"), name=exc.name) from exc
 
 T = TypeVar("T")
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from sdfr.client import split_api
-from sdfr.config import DEFAULT_API
+from sdfr.endpoints import DEFAULT_API
 from sdfr.errors import ConfigError
 
 #: Bounds of the polling interval: polling faster only loads the daemon, slower makes the

@@ -265,15 +265,17 @@ def test_the_answers_are_typed_as_the_schema_records() -> None:
     assert typing.get_args(item)[1] is schema.Neighbor
 
 
-def test_importing_the_client_loads_neither_the_daemon_nor_aiohttp() -> None:
+@pytest.mark.parametrize("module", ["sdfr.client", "sdfr.ros.core"])
+def test_importing_the_client_loads_neither_the_daemon_nor_aiohttp(module: str) -> None:
+    """The client, and the ROS bridge made of it, speak HTTP without sdfrd's code."""
     out = subprocess.run(
-        [sys.executable, "-X", "importtime", "-c", "import sdfr.client"],
+        [sys.executable, "-X", "importtime", "-c", f"import {module}"],
         capture_output=True,
         text=True,
         check=True,
     )
     loaded = {line.rpartition("|")[2].strip() for line in out.stderr.splitlines()}
-    assert "sdfr.client" in loaded
+    assert module in loaded
     for heavy in ("sdfr.wire", "sdfr.protocol", "sdfr.config", "sdfr.daemon", "aiohttp"):
         assert not {m for m in loaded if m == heavy or m.startswith(heavy + ".")}, heavy
 
