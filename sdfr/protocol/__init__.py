@@ -35,8 +35,12 @@ Trust (see also sdfr.auth, and docs/security.md for each claim's test):
   per source address (SOURCE_RATE), and challenges per address and in all (CHALLENGE_RATE).
 
 The package: `config` (limits, timing), `peers` (what a robot knows of others), `state`
-(the core's state, peer bookkeeping, sending) and `core` (`Core`: what arrives, whom to
-trust, the entry points).
+(the core's state, and what every part reads of it), `core` (`Core`: the entry points and
+what arrives), and the parts `Core` drives, plain functions of the state: `sending` (encode,
+seal, bound the bytes), `beacons` (beacons, pings, round trips, the indicator), `challenges`
+(challenges, invitations, ping replies, our own id), `trust` (the gate, proofs, the peer
+table), `updates` (announcing, serving and fetching service sets, deltas, catch-up), `plain`
+(plain SSDP clients) and `timers` (what is due when).
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ class Peer:
     known: bool = False
     #: When it last answered a ping of ours (the proof that keeps it listed reachable).
     answered_at: float = -math.inf
-    #: When the ping was sent whose answer was last believed (later answers only, `_prove`).
+    #: When the ping was sent whose answer was last believed (later answers only, `trust.prove`).
     asked_at: float = -math.inf
     #: When it last said something not believed yet (challenged until it answers or stops).
     claimed_at: float = -math.inf
@@ -134,6 +134,6 @@ class Counters:
     challenges: int = 0
     #: Challenges not sent for want of budget (CHALLENGE_RATE): a sign of a flood.
     challenges_limited: int = 0
-    #: Invitations to challenge us sent (`Core._invite`): robots whose first beacon did not
+    #: Invitations to challenge us sent (`challenges.invite`): robots whose first beacon did not
     #: pay for our challenge.
     invites: int = 0

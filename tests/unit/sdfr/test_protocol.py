@@ -6,7 +6,7 @@ import pytest
 
 from sdfr import wire
 from sdfr.model import PeerRecord, Service
-from sdfr.protocol import Core, CoreConfig
+from sdfr.protocol import Core, CoreConfig, updates
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, sent, services
 from tests.support.wire_data import noisy_services
 
@@ -26,7 +26,7 @@ def test_startup_six_robots_converge_within_2s_with_100_services_each() -> None:
     took = net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
     assert took < 2.0
     # A set of 100 services does not fit one datagram: it went out in parts.
-    parts = net.nodes["r1"].core._update_parts()
+    parts = updates.update_parts(net.nodes["r1"].core)
     assert len(parts) > 1 and all(len(p) <= wire.MAX_DATAGRAM for p in parts)
 
 
@@ -458,4 +458,4 @@ def test_a_delta_without_its_base_is_caught_up_by_unicast() -> None:
     assert len(caught) == 1 and not [d for d in to_r2 if kind_of(d) == "update"]
     msg = wire.decode(caught[0])
     assert isinstance(msg, wire.Update) and msg.base == 1 and msg.origin.version in (2, 3)
-    assert len(caught[0]) < sum(map(len, net.nodes["r1"].core._update_parts(True))) / 2
+    assert len(caught[0]) < sum(map(len, updates.update_parts(net.nodes["r1"].core, True))) / 2

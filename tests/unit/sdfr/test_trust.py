@@ -23,6 +23,7 @@ from sdfr.protocol import (
     SOURCE_BURST,
     SOURCE_RATE,
     Addr,
+    updates,
 )
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, services
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Update
@@ -472,7 +473,7 @@ def test_a_fetch_from_an_unproven_address_gets_no_more_bytes_than_it_sent() -> N
     net.inject("r1", real, r2.addr)
     parts = [d for _, d, dst in net.nodes["r1"].sent if dst == r2.addr and kind_of(d) == "update"]
     core = net.nodes["r1"].core
-    assert len(parts) >= len(core._update_parts(core._compact_for(r2.addr)))
+    assert len(parts) >= len(updates.update_parts(core, core._compact_for(r2.addr)))
 
 
 def fake_alives(n: int) -> Iterator[tuple[bytes, Addr]]:

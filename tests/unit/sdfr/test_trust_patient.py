@@ -372,7 +372,7 @@ def _first_meeting(keyring: Keyring, a: str, b: str, seed: int) -> float:
 
 def test_robots_that_meet_list_each_other_within_a_round_trip_of_the_first_beacon() -> None:
     # A first beacon does not pay for a padded challenge (no amplification), so the robot
-    # that heard it invites one (`Core._invite`): both list each other a few network delays
+    # that heard it invites one (`challenges.invite`): both list each other a few network delays
     # (1-4 ms here) later, not a beacon period later.  Ids of different lengths: the
     # invitation pays for the longer one's challenge.
     for keyring in (Keyring(), keyed()):
