@@ -6,8 +6,8 @@ The daemon's only HTTP server. It does what a REST API for programs on this robo
 no more: HTTP/1.1 keep-alive and pipelining, bodies by Content-Length or chunked, `Expect:
 100-continue`, chunked streamed answers, bounded lines, headers, bodies and waits, and an
 answer in JSON to what it cannot read (the API's `errors_as_json` does the same for what a
-handler refuses). It replaces aiohttp's server, which costs far more memory in every
-process; clients are unaffected: it is the same HTTP.
+handler refuses). A general server (aiohttp's) would cost far more memory in every process
+(docs/architecture.md); clients see the same HTTP.
 """
 
 from __future__ import annotations
