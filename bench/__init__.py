@@ -9,6 +9,11 @@ from pathlib import Path
 import sdfr
 
 
+def err(text: str) -> None:
+    """A line on stderr at once: the benches' progress and tables."""
+    print(text, file=sys.stderr, flush=True)
+
+
 def compile_sdfr() -> dict[str, object]:
     """Write the bytecode of sdfr's modules (`__pycache__`) before a bench starts daemons, as
     `pip install` does: a daemon that finds none (a checkout run with PYTHONDONTWRITEBYTECODE

@@ -39,7 +39,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from bench import compile_sdfr
+from bench import compile_sdfr, err
 from netlab import procstat
 from netlab.lab import Lab
 from sdfr.config import LAYER_MODES, Config
@@ -50,10 +50,6 @@ TARGET_PSS_MIB = 16.0
 TARGET_IDLE_CPU_PERCENT = 0.05
 #: The paper: under 0.3 % of 4 GB.
 PAPER_MEMORY_MB = 0.003 * 4000
-
-
-def err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def loadavg() -> list[float]:

@@ -43,7 +43,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench import compile_sdfr, paper_figures, paper_lab
+from bench import compile_sdfr, err, paper_figures, paper_lab
 from bench.paper_lab import (
     ROOT,
     SAMPLE_EVERY_S,
@@ -51,7 +51,6 @@ from bench.paper_lab import (
     Sampler,
     captured,
     conditions,
-    err,
     keep_logs,
 )
 from bench.paper_measure import (

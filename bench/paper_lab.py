@@ -8,13 +8,13 @@ import contextlib
 import os
 import shutil
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from bench import err
 from bench.paper_measure import Reading, usage
 from netlab import capture, naming, procstat
 from netlab.lab import Lab
@@ -31,10 +31,6 @@ def keep_logs(lab: Lab, folder: Path) -> None:
     for name, robot in lab.robots.items():
         with contextlib.suppress(OSError):
             shutil.copyfile(robot.log, folder / f"sdfrd-{name}.log")
-
-
-def err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def run_folder_options(p: argparse.ArgumentParser) -> None:

@@ -31,21 +31,16 @@ import math
 import os
 import platform
 import statistics
-import sys
 import time
 from collections import Counter, defaultdict
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from bench import compile_sdfr
+from bench import compile_sdfr, err
 from netlab import pcap, scenario
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def loadavg() -> list[float]:

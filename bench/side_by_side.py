@@ -48,8 +48,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench import paper_lab
-from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, err, keep_logs
+from bench import err, paper_lab
+from bench.paper_lab import ROOT, SDFR_PORT, Sampler, captured, conditions, keep_logs
 from bench.paper_measure import (
     dig,
     mdns_messages,
