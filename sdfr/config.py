@@ -30,6 +30,9 @@ from sdfr.options import (
     option_help,
     split_hostport,
 )
+from sdfr.options import (
+    kind as option_kind,
+)
 
 if TYPE_CHECKING:
     import argparse
@@ -89,7 +92,7 @@ _SCALARS: dict[str, type] = {"int": int, "float": float}
 
 
 def _coerce(name: str, raw: Any) -> Any:
-    kind = OPTIONS[name].metadata["kind"]
+    kind = option_kind(name)
     if kind == "path":
         return Path(str(raw))
     if kind == "bool":

@@ -37,16 +37,25 @@ def default_state_dir() -> Path:
     return Path(base) / "sdfr"
 
 
-#: How an option's value is read from a flag or a TOML value (`sdfr.config`), by its `kind`.
-OPTION_KINDS = ("str", "int", "float", "path", "bool", "numbers", "names")
+#: How an option's value is read from a flag or a TOML value (`sdfr.config`), by the type
+#: of its field (``| None`` aside).
+KINDS = {
+    "str": "str",
+    "int": "int",
+    "float": "float",
+    "bool": "bool",
+    "Path": "path",
+    "tuple[float, ...]": "numbers",
+    "tuple[str, ...]": "names",
+}
 
 
-def option(text: str, *, kind: str = "str", passed: bool = True) -> dict[str, Any]:
-    """The metadata of a `Config` field that is an sdfrd option: its help `text`, how its value
-    is read (`kind`, one of OPTION_KINDS), and whether `to_args` passes it on to the layers
-    (`passed`).  The flag, the TOML key, `to_args`, netlab's flags and its checks follow."""
-    assert kind in OPTION_KINDS, kind
-    return {"help": text, "kind": kind, "passed": passed}
+def option(text: str, *, passed: bool = True) -> dict[str, Any]:
+    """The metadata of a `Config` field that is an sdfrd option: its help `text`, and whether
+    `to_args` passes it on to the layers (`passed`).  Its name, type and default are the
+    field's; the flag, the TOML key, how a value is read, `to_args` and netlab's checks all
+    follow from these."""
+    return {"help": text, "passed": passed}
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,10 +71,7 @@ class Config:
     )
     fleet: int = field(
         default=1,
-        metadata=option(
-            "fleet id 0-255; robots of other fleets are ignored (default 1)",
-            kind="int",
-        ),
+        metadata=option("fleet id 0-255; robots of other fleets are ignored (default 1)"),
     )
     api: str = field(
         default=DEFAULT_API,
@@ -86,16 +92,12 @@ class Config:
         default_factory=default_state_dir,
         metadata=option(
             "directory of the durable state: registrations, history map (default "
-            "/var/lib/sdfr as root, else $XDG_STATE_HOME/sdfr)",
-            kind="path",
+            "/var/lib/sdfr as root, else $XDG_STATE_HOME/sdfr)"
         ),
     )
     beacon_interval: float = field(
         default=BEACON_INTERVAL,
-        metadata=option(
-            f"seconds between Alive beacons (default {BEACON_INTERVAL:g})",
-            kind="float",
-        ),
+        metadata=option(f"seconds between Alive beacons (default {BEACON_INTERVAL:g})"),
     )
     robot_id: str | None = field(
         default=None,
@@ -110,46 +112,36 @@ class Config:
     )
     port: int = field(
         default=wire.DEFAULT_PORT,
-        metadata=option(
-            f"UDP port (default {wire.DEFAULT_PORT})",
-            kind="int",
-        ),
+        metadata=option(f"UDP port (default {wire.DEFAULT_PORT})"),
     )
     miss_limit: int = field(
         default=MISS_LIMIT,
         metadata=option(
-            f"beacon periods of silence after which a peer is unreachable (default {MISS_LIMIT})",
-            kind="int",
+            f"beacon periods of silence after which a peer is unreachable (default {MISS_LIMIT})"
         ),
     )
     ping_interval: float | None = field(
         default=None,
         metadata=option(
-            "seconds between unicast pings to each reachable peer (default: the beacon interval)",
-            kind="float",
+            "seconds between unicast pings to each reachable peer (default: the beacon interval)"
         ),
     )
     ping_window: int = field(
         default=PING_WINDOW,
         metadata=option(
-            f"how many recent pings the connection indicator counts (default {PING_WINDOW})",
-            kind="int",
+            f"how many recent pings the connection indicator counts (default {PING_WINDOW})"
         ),
     )
     reply_delay_max: float = field(
         default=REPLY_DELAY_MAX,
         metadata=option(
             "longest random delay before answering a Discovery, bounded by its MX "
-            f"(default {REPLY_DELAY_MAX:g})",
-            kind="float",
+            f"(default {REPLY_DELAY_MAX:g})"
         ),
     )
     ttl: int = field(
         default=1,
-        metadata=option(
-            "multicast TTL (default 1: one radio hop)",
-            kind="int",
-        ),
+        metadata=option("multicast TTL (default 1: one radio hop)"),
     )
     addressing: str = field(
         default="manual",
@@ -193,8 +185,7 @@ class Config:
         metadata=option(
             "file holding the fleet's WiFi secret (make it readable by root only: chmod 600; a "
             "world-readable file is used with a warning). Without key_file it keys the fleet's "
-            "datagrams too: the keyring is seeded with a key derived from it (default: none)",
-            kind="path",
+            "datagrams too: the keyring is seeded with a key derived from it (default: none)"
         ),
     )
     wifi_mode: str = field(
@@ -206,8 +197,7 @@ class Config:
     wifi_freq: int = field(
         default=2412,
         metadata=option(
-            "WiFi channel centre frequency in MHz, 2.4 or 5 GHz (default 2412, channel 1)",
-            kind="int",
+            "WiFi channel centre frequency in MHz, 2.4 or 5 GHz (default 2412, channel 1)"
         ),
     )
     wifi_country: str | None = field(
@@ -222,8 +212,7 @@ class Config:
             "file holding the fleet key (`sdfr keys generate FILE`; readable by root only): "
             "every datagram is then signed and checked. It seeds the keyring in STATE_DIR on the "
             "first start; `sdfr keys` manages the keyring after that (default: none: a key derived "
-            "from the WiFi secret when one is configured, else the fleet is open)",
-            kind="path",
+            "from the WiFi secret when one is configured, else the fleet is open)"
         ),
     )
     auth: str | None = field(
@@ -249,8 +238,7 @@ class Config:
             "more names the local API may be reached by (the Host header), comma "
             "separated; 127.0.0.1, localhost, ::1 and the --api host always are. Anything else is "
             "refused: a web page cannot reach the API through a name it controls (DNS rebinding) "
-            "(default: none more)",
-            kind="names",
+            "(default: none more)"
         ),
     )
     api_allowed_origins: tuple[str, ...] = field(
@@ -258,8 +246,7 @@ class Config:
         metadata=option(
             "web origins whose pages may call the local API (e.g. http://dashboard.local:8080), "
             "comma separated; default none: a request a browser sends for another site's page is "
-            "refused",
-            kind="names",
+            "refused"
         ),
     )
     api_allow_remote: bool = field(
@@ -267,24 +254,21 @@ class Config:
         metadata=option(
             "true: let --api listen on an address other machines reach (refused "
             "otherwise); needs api_token_file, whose token every request from another machine must "
-            "carry (Authorization: Bearer TOKEN) (default false: the write API stays on the robot)",
-            kind="bool",
+            "carry (Authorization: Bearer TOKEN) (default false: the write API stays on the robot)"
         ),
     )
     api_token_file: Path | None = field(
         default=None,
         metadata=option(
             "file holding the token of api_allow_remote (one line, 16 characters "
-            "or more; readable by root only) (default: none)",
-            kind="path",
+            "or more; readable by root only) (default: none)"
         ),
     )
     indicator_thresholds: tuple[float, ...] = field(
         default=(0.5, 0.8),
         metadata=option(
             "connection indicator levels (0-1, comma separated) whose crossing "
-            "is a robot.indicator event of GET /events (default 0.5,0.8)",
-            kind="numbers",
+            "is a robot.indicator event of GET /events (default 0.5,0.8)"
         ),
     )
     layers: str = field(
@@ -492,6 +476,11 @@ OPTIONS = {f.name: f for f in fields(Config)}
 def flag(name: str) -> str:
     """The command-line flag of option `name` (beacon_interval: --beacon-interval)."""
     return "--" + name.replace("_", "-")
+
+
+def kind(name: str) -> str:
+    """How option `name`'s value is read (a value of KINDS), by its field's type."""
+    return KINDS[str(OPTIONS[name].type).removesuffix(" | None")]
 
 
 def option_help(name: str) -> str:

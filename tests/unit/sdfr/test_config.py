@@ -267,7 +267,7 @@ def test_every_option_is_one_field_with_its_help_and_kind() -> None:
     """The one place an option is defined: a Config field whose metadata the flags, the TOML
     keys, `to_args` and netlab's checks read."""
     for name, f in config.OPTIONS.items():
-        assert f.metadata["help"] and f.metadata["kind"] in config_options.OPTION_KINDS, name
+        assert f.metadata["help"] and config_options.kind(name), name
         assert config.flag(name) in build_parser().format_help()
     assert [n for n, f in config.OPTIONS.items() if not f.metadata["passed"]] == ["wifi_secret"]
 
