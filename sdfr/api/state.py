@@ -8,7 +8,6 @@ import contextlib
 import json
 import logging
 import os
-import socket
 import time
 from bisect import bisect_left
 from collections.abc import Callable, Iterable, Iterator
@@ -20,6 +19,8 @@ from sdfr import procfs, wire
 from sdfr.api.http import AppKey, Request, Response
 from sdfr.api.replies import Handler, json_bytes
 from sdfr.config import Config, location_max_len
+from sdfr.daemon.channel import EVENTS, STATUS
+from sdfr.daemon.channel import notify_discovery as notify_discovery  # (sdfr.api's too)
 from sdfr.model import PeerRecord, Service
 from sdfr.status import DiscoveryStatus
 from sdfr.store import (
@@ -64,28 +65,6 @@ LATENCY_BUCKETS = (
 
 #: Callback failures of the discovery layer within a minute that make /health say "failing".
 FAILING_AFTER = 3
-
-
-# -- discovery notification --------------------------------------------------------------------
-
-
-def notify_discovery(state_dir: Path, what: bytes = b"services\n") -> bool:
-    """Wake the discovery layer so it announces a change of the local services at once (or,
-    `b"status\n"`, sends its status now); whether the datagram went.
-
-    Best effort: when discovery is down it is told nothing, and it polls the version anyway.
-    """
-    path = str(state_dir / "discovery.sock")
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
-        sock.setblocking(False)
-        try:
-            sock.sendto(what, path)
-        except (FileNotFoundError, ConnectionRefusedError, BlockingIOError):
-            return False
-        except OSError as exc:
-            log.warning("cannot notify the discovery layer at %s: %s", path, exc)
-            return False
-    return True
 
 
 # -- discovery status --------------------------------------------------------------------------
@@ -357,8 +336,9 @@ class ApiState:
     """What the handlers of one application share."""
 
     def discovery(self) -> DiscoveryState:
-        """The discovery layer's latest status: the one it sent over STATUS_SOCKET while that
-        is fresh, else the file it writes (which survives a restart of this layer)."""
+        """The discovery layer's latest status: the one it sent over the channel's
+        STATUS_SOCKET while that is fresh, else the file it writes (which survives a restart
+        of this layer)."""
         self._decode_live()
         live = self.live_status
         if live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE:
@@ -380,7 +360,7 @@ class ApiState:
     def take_status(self, data: bytes) -> None:
         """A datagram from the discovery layer: its status (kept as it came, decoded when
         asked for), or news in the event log."""
-        if data == b"events\n":
+        if data == EVENTS:
             if self.hub is not None:
                 self.hub.wake()
             return
@@ -393,8 +373,8 @@ class ApiState:
         """Make the discovery layer's status current before an answer shows it (/health,
         /self, /metrics, /keys): it sends its status by itself only when more than its
         counters changed. If the last one came more than COUNTERS_FRESH ago, ask for one now
-        (b"status" on discovery.sock) and wait for it, up to STATUS_WAIT, or LIVENESS_WAIT if
-        the last one is too old to say "up". A discovery layer that does not answer leaves
+        (the channel's STATUS) and wait for it, up to STATUS_WAIT, or LIVENESS_WAIT if the
+        last one is too old to say "up". A discovery layer that does not answer leaves
         the last one (and /health says why); one that is not there is not waited for."""
         if time.monotonic() - self.live_at < COUNTERS_FRESH:
             return
@@ -403,7 +383,7 @@ class ApiState:
         up = live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE
         came = self.live_came = asyncio.Event()
         try:
-            if notify_discovery(self.cfg.state_dir, b"status\n"):  # (else none is listening)
+            if notify_discovery(self.cfg.state_dir, STATUS):  # (else none is listening)
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(came.wait(), STATUS_WAIT if up else LIVENESS_WAIT)
         finally:

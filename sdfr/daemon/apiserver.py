@@ -1,7 +1,8 @@
-"""The API layer's process: the REST API (TCP and STATE_DIR/api.sock) and the description server.
+"""The API layer: the REST API (TCP and STATE_DIR/api.sock), and the listener of the discovery
+layer's datagrams.
 
 Started by the supervisor with the same flags as `sdfrd`; it lives and dies independently of
-the discovery layer and shares state with it only through the store.
+the discovery layer and shares state with it through the store and sdfr.daemon.channel.
 """
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ import socket
 import sys
 from pathlib import Path
 
-from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app, notify_discovery
+from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app
 from sdfr.config import Config, from_args, split_hostport
-from sdfr.daemon import logs, notify
+from sdfr.daemon import channel, logs
+from sdfr.daemon.channel import Host
 from sdfr.errors import ConfigError
-from sdfr.store import STATUS_SOCKET, Store, StoreError
+from sdfr.store import Store, StoreError
 
 log = logging.getLogger("sdfr.apiserver")
 
@@ -108,13 +110,13 @@ async def _start_tcp(runner: Runner, flag: str, value: str) -> None:
         raise _bind_error(flag.replace("_", "-"), value, exc) from None
 
 
-async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
-    """Serve until `stop` is set."""
+async def serve(cfg: Config, store: Store, stop: asyncio.Event, host: Host | None = None) -> None:
+    """Serve until `stop` is set, beating on `host`'s pipe."""
     access_log = logging.getLogger("sdfr.api.access") if cfg.log_level == "debug" else None
     app = create_app(cfg, store)
     runner = Runner(app, access_log=access_log, shutdown_timeout=SHUTDOWN_TIMEOUT)
     sock_path = api_socket_path(cfg.state_dir)
-    status = _StatusListener(cfg.state_dir / STATUS_SOCKET, app[STATE])
+    status = _StatusListener(cfg.state_dir / channel.STATUS_SOCKET, app[STATE])
     sock_bound = False
     try:
         await runner.setup()
@@ -128,7 +130,7 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
             raise StartError(f"{sock_path}: cannot listen: {exc.strerror or exc}") from None
         status.start()
         log.info("serving the API on http://%s and %s", cfg.api, sock_path)
-        beating = asyncio.get_running_loop().create_task(_beat())
+        beating = asyncio.get_running_loop().create_task(_beat(host or Host()))
         await stop.wait()
         beating.cancel()
         log.info("stopping")
@@ -144,10 +146,10 @@ async def serve(cfg: Config, store: Store, stop: asyncio.Event) -> None:
 BEAT_PERIOD = 5.0
 
 
-async def _beat() -> None:
+async def _beat(host: Host) -> None:
     """The heartbeat the supervisor watches: from the event loop, so a hung loop stops it."""
     while True:
-        notify.beat()
+        host.beat()
         await asyncio.sleep(BEAT_PERIOD)
 
 
@@ -171,20 +173,11 @@ class _StatusListener:
         asyncio.get_running_loop().add_reader(sock.fileno(), self._read)
         self.sock = sock
         # The discovery layer sends its status when it changes or is asked: ask for it now.
-        notify_discovery(self.path.parent, b"status\n")
+        channel.notify_discovery(self.path.parent, channel.STATUS)
 
     def _read(self) -> None:
         assert self.sock is not None
-        while True:
-            try:
-                # Each datagram is read at its own size (peeked with MSG_TRUNC). A 1 MiB
-                # buffer per read cost a 1 MiB mmap each time, and the one the last read
-                # (finding nothing) freed whole raised glibc's mmap and trim thresholds to
-                # 1 and 2 MiB (see sdfr.daemon.pin_malloc): 0.13 MiB more kept by the heaps.
-                size = self.sock.recv_into(self._peek, 1, socket.MSG_PEEK | socket.MSG_TRUNC)
-                data = self.sock.recv(max(size, 1))
-            except OSError:  # nothing more to read now (or the socket went away)
-                return
+        for data in channel.receive(self.sock, self._peek):
             self.state.take_status(data)
 
     def stop(self) -> None:
@@ -205,11 +198,10 @@ def raise_fd_limit() -> None:
             resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
 
 
-async def _run(cfg: Config, store: Store) -> None:
+async def _run(cfg: Config, store: Store, host: Host) -> None:
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    notify.on_stop(loop, stop.set)
-    await serve(cfg, store, stop)
+    host.on_stop(asyncio.get_running_loop(), stop.set)
+    await serve(cfg, store, stop, host)
 
 
 def _fail(message: str) -> int:
@@ -217,7 +209,8 @@ def _fail(message: str) -> int:
     return 2
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, host: Host | None = None) -> int:
+    """The API layer (`host`: what its supervisor gave it; None: it runs alone)."""
     try:
         cfg = from_args(argv)
     except ConfigError as exc:
@@ -232,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     except StoreError as exc:
         return _fail(str(exc))
     try:
-        asyncio.run(_run(cfg, store))
+        asyncio.run(_run(cfg, store, host or Host()))
     except (StartError, ConfigError, StoreError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:  # before the signal handlers were installed

@@ -8,37 +8,31 @@ the history map to the shared store and reads local registrations from it.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import os
 import random
 import socket
-import struct
-import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
-from ipaddress import IPv4Address
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sdfr import auth, events, keystore, netif, status
 from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
-from sdfr.daemon import logs, notify
+from sdfr.daemon import channel, logs, reporting
+from sdfr.daemon.channel import Host
 from sdfr.daemon.describe import DescribeServer
 from sdfr.daemon.fleetlog import FleetLog
+from sdfr.daemon.sockets import open_multicast_socket, rearm
 from sdfr.daemon.unknownkeys import UnknownKeys
 from sdfr.errors import SdfrError
 from sdfr.model import PeerRecord
 from sdfr.protocol import Core
-from sdfr.store import STATUS_SOCKET, StateWriteError, Store
-from sdfr.wire import MESSAGE_TYPES
+from sdfr.store import StateWriteError, Store
 
 if TYPE_CHECKING:
-    from sdfr.addressing import Addressing
-    from sdfr.daemon.arp import ArpSocket, Netlink
+    from sdfr.daemon.autoaddr import AutoAddress
 
 log = logging.getLogger("sdfrd.discovery")
 
@@ -46,49 +40,19 @@ log = logging.getLogger("sdfrd.discovery")
 #: the fallbacks for lost wake-ups (services, keyring), the address check.
 #: Every wake-up of an idle daemon costs CPU: 5 s is three beats within STALL_AFTER.
 STATUS_PERIOD = 5.0
-#: The status file (read by an API layer that has no fresh datagram) is written when what it
-#: says changed, and at least this often (seconds): it also proves the state dir writable.
-STATUS_FILE_EVERY = 30.0
-#: Ticks between the fallbacks for lost wake-ups (the API layer's datagram on discovery.sock
-#: says when services or keys change; these look anyway).
+#: Ticks between the fallbacks for lost wake-ups (the API layer's SERVICES datagram says when
+#: services or keys change; these look anyway).
 SLOW_TICKS = 5
-CONTROL_NAME = "discovery.sock"
-#: Failures of the layer's callbacks within this many seconds make /health say "failing".
-ERROR_WINDOW = 60.0
-
-
-def open_multicast_socket(cfg: Config, iface: str, source: str = "") -> socket.socket:
-    """A UDP socket on the SDfR port, in the group on `iface` only; its multicast datagrams
-    from `source` when given (else the kernel's choice)."""
-    ifindex = netif.index(iface)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BINDTODEVICE, iface.encode())
-        sock.bind(("0.0.0.0", cfg.port))
-        mreqn = struct.pack("4s4si", socket.inet_aton(cfg.group), b"\0" * 4, ifindex)
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreqn)
-        if source:
-            mreqn = struct.pack("4s4si", b"\0" * 4, socket.inet_aton(source), ifindex)
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, mreqn)
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, cfg.ttl)
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 0)
-        sock.setblocking(False)
-    except OSError as exc:
-        sock.close()
-        raise SdfrError(
-            f"iface: cannot join {cfg.group}:{cfg.port} on {iface}: {exc.strerror or exc}"
-        ) from None
-    return sock
 
 
 class DiscoveryLayer:
     """Runs one Core against real sockets until stopped."""
 
-    def __init__(self, cfg: Config, store: Store) -> None:
+    def __init__(self, cfg: Config, store: Store, host: Host | None = None) -> None:
         if cfg.iface is None or cfg.robot_id is None:
             raise SdfrError("the discovery layer needs --iface and --robot-id")
         self.cfg = cfg
+        self.host = host or Host()
         self.iface: str = cfg.iface
         self.store = store
         self.loop = asyncio.get_running_loop()
@@ -101,8 +65,7 @@ class DiscoveryLayer:
         self.keyring_path = keystore.keyring_path(cfg.state_dir)
         self._keyring_stamp = self._stamp()
         keyring = keystore.load_keyring(cfg.state_dir)
-        self._errors: deque[float] = deque()
-        self._last_error: tuple[float, str] | None = None
+        self.failures = reporting.Failures()
         self._conflict_logged = 0  # the conflict's datagram count when last logged
         #: Datagrams sealed with keys the keyring does not hold, for as long as a peer heard
         #: would stay listed (a robot left out of a key rotation is said, not just counted).
@@ -133,35 +96,20 @@ class DiscoveryLayer:
         # echo it hears there for its own, not another sender's claim of our robot id.
         loopback = netif.is_loopback(self.iface)
         self.sock = open_multicast_socket(cfg, self.iface, self.address if loopback else "")
-        self.control = self._open_control(cfg.state_dir / CONTROL_NAME)
-        self.addressing: Addressing | None = None
-        self.arp: ArpSocket | None = None
-        self.netlink: Netlink | None = None
+        self.control = channel.open_control(cfg.state_dir)
+        #: `--addressing auto`'s machine and sockets (imported only then).
+        self.auto: AutoAddress | None = None
         if cfg.addressing == "auto":
-            # (imported here: a robot with a fixed address never pays for the ARP machinery)
-            from sdfr.addressing import AddrConfig, Addressing
-            from sdfr.daemon.arp import ArpSocket, Netlink
+            from sdfr.daemon.autoaddr import AutoAddress
 
-            mac = netif.mac(self.iface)
-            self.addressing = Addressing(AddrConfig(cfg.fleet, mac), random.Random())
-            self.arp = ArpSocket(self.iface, bytes.fromhex(mac.replace(":", "")))
-            self.netlink = Netlink(self.iface)
+            self.auto = AutoAddress(cfg.fleet, self.iface, self.loop, self._on_bound)
         self.describe = DescribeServer(self._description)
         self._describe_task: asyncio.Task[None] | None = None
-        # The status goes to the API layer over a datagram socket when it changes and when the
-        # API asks (before it shows it): no disk, so a full state dir does not look like a
-        # dead discovery layer, and no datagram at all while nothing changes.
-        self._status_sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._status_sock.setblocking(False)
-        self._state_problem: tuple[float, str, str] | None = None
-        #: What the status file says (without the heartbeat and counters), and when written.
-        self._status_written: tuple[object, float] | None = None
-        #: `_status_signature()` when the last whole status was sent.
-        self._status_sent: tuple[object, ...] | None = None
+        # The status goes to the API layer when it changes and when the API asks (before it
+        # shows it), and no datagram at all while nothing changes.
+        self.out = reporting.StatusOut(cfg.state_dir, store)
         self._description_cache: tuple[tuple[object, ...], bytes] | None = None
-        self._addr_timer: asyncio.TimerHandle | None = None
         self._arrivals = 0
-        self._bound = asyncio.Event()
         self._timer: asyncio.TimerHandle | None = None
         self._flush_pending = False
         self._stopping = asyncio.Event()
@@ -171,20 +119,10 @@ class DiscoveryLayer:
     def _location(self) -> str:
         return location_url(self.cfg.describe, self.address)
 
-    @staticmethod
-    def _open_control(path: Path) -> socket.socket:
-        """The API layer wakes us through this socket when local services change."""
-        path.unlink(missing_ok=True)
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        sock.bind(str(path))
-        os.chmod(path, 0o660)
-        sock.setblocking(False)
-        return sock
-
     # -- running ---------------------------------------------------------------------------
 
     async def run(self) -> None:
-        notify.on_stop(self.loop, self._stopping.set)
+        self.host.on_stop(self.loop, self._stopping.set)
         self._write_status()
         status_task = asyncio.create_task(self._periodic())
         try:
@@ -193,25 +131,16 @@ class DiscoveryLayer:
             status_task.cancel()
 
     async def _run(self) -> None:
-        if self.addressing is not None and self.arp is not None:
-            self.loop.add_reader(self.arp.fileno(), self._on_arp)
-            current = self._current_auto_address()
-            self.addressing.start(time.monotonic(), current)
-            self._pump_addr()
-            log.info(
-                "addressing: %s %s on %s",
-                "re-announcing" if current else "probing",
-                self.addressing.ip,
-                self.iface,
-            )
+        if self.auto is not None:
+            self.auto.start()
             # Discovery speaks only from an address that is ours.
-            waiter = asyncio.create_task(self._bound.wait())
+            waiter = asyncio.create_task(self.auto.bound.wait())
             stopper = asyncio.create_task(self._stopping.wait())
             await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
             waiter.cancel()
             stopper.cancel()
             if self._stopping.is_set():
-                self._close_addressing()
+                self.auto.close()
                 return
         self._check_address()
         await self._serve_description(first=True)  # a failure here leaves no reader behind
@@ -240,86 +169,20 @@ class DiscoveryLayer:
             self.loop.remove_reader(self.control.fileno())
             self.describe.close()
             self.sock.close()
-            self.control.close()
-            (self.cfg.state_dir / CONTROL_NAME).unlink(missing_ok=True)
-            self._close_addressing()
+            channel.close_control(self.control, self.cfg.state_dir)
+            if self.auto is not None:
+                self.auto.close()
             log.info("discovery stopped (byebye sent)")
 
-    # -- addressing (auto mode) ------------------------------------------------------------
-
-    def _current_auto_address(self) -> IPv4Address | None:
-        """Our address still on the interface from an earlier run, if it is one of ours."""
-        assert self.addressing is not None
-        ip = netif.ipv4(self.iface)
-        if ip is None:
-            return None
-        addr = IPv4Address(ip)
-        return addr if addr in self.addressing.network else None
-
-    def _on_arp(self) -> None:
-        assert self.addressing is not None and self.arp is not None
-        now = time.monotonic()
-        for pkt in self.arp.read():
-            self.addressing.handle_arp(pkt, now)
-        self._pump_addr()
-
-    def _on_addr_timer(self) -> None:
-        self._addr_timer = None
-        assert self.addressing is not None
-        self.addressing.handle_timer(time.monotonic())
-        self._pump_addr()
-
-    def _pump_addr(self) -> None:
-        """Carry out the address machine's decisions: kernel changes, ARP frames, its timer."""
-        machine, arp, netlink = self.addressing, self.arp, self.netlink
-        if machine is None or arp is None or netlink is None:
-            return
-        from sdfr.addressing import Assign, Release
-
-        for action in machine.actions():
-            if isinstance(action, Assign):
-                netlink.assign(action.ip)
-                log.info("addressing: %s is ours", action.ip)
-            elif isinstance(action, Release):
-                netlink.release(action.ip)
-                conflict = machine.conflicts[-1] if machine.conflicts else None
-                log.warning(
-                    "addressing: gave up %s to %s (lower MAC keeps it); probing %s",
-                    action.ip,
-                    conflict.other_mac if conflict else "another robot",
-                    machine.ip,
-                )
-        for pkt in machine.arp_to_send():
-            try:
-                arp.send(pkt)
-            except OSError as exc:
-                log.debug("arp send: %s", exc)
-        if machine.bound is not None:
-            self._bound.set()
-            if self.core.started:
-                self._check_address()
-        deadline = machine.next_deadline()
-        if self._addr_timer is not None and (
-            deadline is None or self._addr_timer.when() != deadline
-        ):
-            self._addr_timer.cancel()
-            self._addr_timer = None
-        if deadline is not None and self._addr_timer is None:
-            self._addr_timer = self.loop.call_at(deadline, self._on_addr_timer)
-
-    def _close_addressing(self) -> None:
-        if self._addr_timer is not None:
-            self._addr_timer.cancel()
-        if self.arp is not None:
-            self.loop.remove_reader(self.arp.fileno())
-            self.arp.close()
-        if self.netlink is not None:
-            self.netlink.close()
+    def _on_bound(self) -> None:
+        """`--addressing auto` found our address bound: follow it once discovering."""
+        if self.core.started:
+            self._check_address()
 
     async def _periodic(self) -> None:
         tick = 0
         while True:
-            notify.beat()
+            self.host.beat()
             await asyncio.sleep(STATUS_PERIOD)
             tick += 1
             self._guard("periodic duties", self._check_address)
@@ -327,19 +190,14 @@ class DiscoveryLayer:
             if tick % SLOW_TICKS == 0:
                 self._guard("reloading the services", self._reload_services)
                 self._guard("reloading the keyring", self._reload_keyring)
-            written = self._status_written
-            if (
-                self._status_signature() != self._status_sent
-                or written is None
-                or time.monotonic() - written[1] >= STATUS_FILE_EVERY
-            ):
+            if self.out.due(self._status_signature()):
                 self._guard("writing the status", self._write_status)
             if self.core.has_dirty:
                 self._guard("saving the history map", self._save)
 
     def _status_signature(self) -> tuple[object, ...]:
         """What changes the status record besides its heartbeat and counters, cheaply."""
-        core, machine, conflict = self.core, self.addressing, self.core.conflict
+        core, auto, conflict = self.core, self.auto, self.core.conflict
         return (
             self._starting,
             core.version,
@@ -347,11 +205,10 @@ class DiscoveryLayer:
             len(core.peers),
             self.address,
             core.location,
-            len(self._errors),
-            self._last_error,
-            self._state_problem,
+            self.failures.signature(),
+            self.out.problem,
             core.announce_error,
-            None if machine is None else (machine.state, machine.bound, machine.conflicts_total),
+            None if auto is None else auto.signature(),
             None if conflict is None else conflict.count,
             self.describe.where,
             self._keyring_stamp,
@@ -364,13 +221,9 @@ class DiscoveryLayer:
         try:
             duty()
         except Exception as exc:
-            now = time.time()
-            self._errors.append(now)
-            self._recent_errors(now)
             message = f"{what} failed: {type(exc).__name__}: {exc}"
-            if self._last_error is None or self._last_error[1] != message:
+            if self.failures.add(time.time(), message):
                 log.exception("%s", message)  # each new failure once, with its traceback
-            self._last_error = (now, message)
 
     def _on_readable(self) -> None:
         self._guard("receiving", self._receive)
@@ -386,29 +239,23 @@ class DiscoveryLayer:
             except OSError as exc:
                 log.debug("recvfrom: %s", exc)
                 break
-            if addr[0] == self.address and self.addressing is not None:
+            if addr[0] == self.address and self.auto is not None:
                 # Another robot sends from our address: a conflict, typically after a merge.
-                self.addressing.suspect(now)
+                self.auto.machine.suspect(now)
             unknown = self.core.counters.rejects["unknown-key"]
             self.core.receive(data, (addr[0], addr[1]), now)
             if self.core.counters.rejects["unknown-key"] != unknown:
                 self._unknown_key(data, addr[0], now)
-        if self.addressing is not None and self.core.arrivals != self._arrivals:
+        if self.auto is not None and self.core.arrivals != self._arrivals:
             self._arrivals = self.core.arrivals
-            self.addressing.refresh(now)
+            self.auto.machine.refresh(now)
         self._log_conflict()  # (at once, not at the next tick)
-        self._pump_addr()
+        if self.auto is not None:
+            self.auto.pump()
 
     def _on_control(self) -> None:
-        asked = False
-        while True:
-            try:
-                asked |= self.control.recv(64).startswith(b"status")
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                break
-        if asked:  # an API layer that just started: our status at once, not within a tick
+        if channel.status_asked(self.control):
+            # Asked by an API layer (just started, or about to show it): now, not at a tick.
             self._guard("sending the status", self._send_status)
             return
         self._guard("reloading the keyring", self._reload_keyring)
@@ -436,16 +283,10 @@ class DiscoveryLayer:
             except OSError as exc:
                 self.core.counters.rejects["send-error"] += 1
                 log.debug("sendto %s: %s", dst or group, exc)
-        if self.core.has_dirty and not self._flush_pending and self._state_problem is None:
+        if self.core.has_dirty and not self._flush_pending and self.out.problem is None:
             self._flush_pending = True
             self.loop.call_soon(self._flush)
-        deadline = self.core.next_deadline()
-        if self._timer is not None and (deadline is None or self._timer.when() != deadline):
-            self._timer.cancel()
-            self._timer = None
-        if deadline is not None and self._timer is None:
-            # loop.time() is time.monotonic() on Linux's default loop.
-            self._timer = self.loop.call_at(deadline, self._on_timer)
+        self._timer = rearm(self.loop, self._timer, self.core.next_deadline(), self._on_timer)
 
     def _flush(self) -> None:
         self._flush_pending = False
@@ -461,12 +302,10 @@ class DiscoveryLayer:
         except StateWriteError as exc:
             # Kept to be saved again: the next periodic tick tries (when there is room).
             self.core.mark_unsaved([v.robot_id for v in views], removed)
-            self._state_failed(exc)
+            self.out.failed(exc)
         else:
-            if self._state_problem is not None and (views or removed):
-                # It can be written again: say so now, not at the next status file rewrite.
-                self._state_problem = None
-                self._status_written = None
+            if self.out.problem is not None and (views or removed):
+                self.out.recovered()
 
     def _save_views(self, removed: list[str], views: list[PeerRecord]) -> None:
         """Save what changed in the history map, with the events it makes, in one
@@ -482,11 +321,7 @@ class DiscoveryLayer:
             self.tracker.rollback(undo)  # told again with the next try
             raise
         if told:
-            self._wake_api(b"events\n")
-
-    def _wake_api(self, message: bytes) -> None:
-        with contextlib.suppress(OSError):  # no API layer listening: it polls too
-            self._status_sock.sendto(message, str(self.cfg.state_dir / STATUS_SOCKET))
+            self.out.to_api.send(channel.EVENTS)
 
     def _stamp(self) -> tuple[int, int, int] | None:
         try:
@@ -598,149 +433,53 @@ class DiscoveryLayer:
                 now - seen.first_seen,
             )
 
-    def _send_status(self, record: dict[str, object] | None = None) -> None:
-        """Our status (`record`, else made now) to the API layer: a datagram, no disk."""
-        if record is None:
-            record = self._status().to_json()
-        self._status_sent = self._status_signature()
-        with contextlib.suppress(OSError):  # no API layer listening: it reads the file later
-            self._status_sock.sendto(
-                json.dumps(record, separators=(",", ":")).encode(),
-                str(self.cfg.state_dir / STATUS_SOCKET),
-            )
+    def _send_status(self) -> None:
+        """Our status to the API layer: a datagram, no disk."""
+        self.out.send(self._status().to_json(), self._status_signature())
 
     def _write_status(self) -> None:
-        """The status to the API layer, and to the file when what it says changed (the
-        heartbeat and the counters aside) or STATUS_FILE_EVERY has passed: replacing a file
-        every tick was the layer's largest idle cost."""
-        record = self._status().to_json()
-        self._send_status(record)
-        key = {k: v for k, v in record.items() if k not in ("heartbeat", "counters")}
-        now = time.monotonic()
-        last = self._status_written
-        if last is not None and last[0] == key and now - last[1] < STATUS_FILE_EVERY:
-            return
-        try:
-            self.store.write_status(record)
-        except StateWriteError as exc:
-            self._state_failed(exc)
-            self._status_written = None
-        else:
-            self._state_problem = None
-            self._status_written = (key, now)
-
-    def _state_failed(self, exc: StateWriteError) -> None:
-        """A write of the state dir failed (full, read-only): say so in the status, log it
-        once a minute (the log filter), and go on discovering."""
-        if self._state_problem is None or self._state_problem[1] != exc.reason:
-            log.error("%s", exc)
-        self._state_problem = (time.time(), exc.reason, str(exc))
+        """Our status to the API layer, and to the status file when due (StatusOut.write)."""
+        self.out.write(self._status().to_json(), self._status_signature())
 
     def _status(self) -> status.DiscoveryStatus:
-        c = self.core.counters
-        problem = self._state_problem
+        core = self.core
         return status.DiscoveryStatus(
             pid=os.getpid(),
             heartbeat=time.time(),
-            thread=None
-            if threading.current_thread() is threading.main_thread()
-            else threading.get_native_id(),
+            thread=reporting.thread_id(),
             starting=self._starting,
             robot_id=self.cfg.robot_id,
             fleet=self.cfg.fleet,
             iface=self.iface,
             address=self.address,
             boot_id=self.boot_id,
-            version=self.core.version,
+            version=core.version,
             started=self.started,
-            location=self.core.location,
-            peers_reachable=sum(1 for p in self.core.peers.values() if p.reachable),
-            peers_known=len(self.core.peers),
-            addressing=self._addressing_status(),
-            counters=status.Counters(
-                datagrams_in={k: c.datagrams_in[k] for k in MESSAGE_TYPES},
-                datagrams_out={k: c.datagrams_out[k] for k in MESSAGE_TYPES},
-                bytes_in=c.bytes_in,
-                bytes_out=c.bytes_out,
-                rejects=dict(c.rejects),
-                challenges=c.challenges,
-                challenges_limited=c.challenges_limited,
-                invites=c.invites,
-            ),
-            auth=self._auth_status(),
+            location=core.location,
+            peers_reachable=sum(1 for p in core.peers.values() if p.reachable),
+            peers_known=len(core.peers),
+            addressing=status.Addressing() if self.auto is None else self.auto.status(),
+            counters=reporting.counters(core),
+            auth=reporting.auth(core, self.unknown_keys, self.clock_offset),
             describe=self.describe.status(),
-            robot_id_conflict=self._conflict_status(),
-            errors=self._error_status(),
-            state=status.StateDir()
-            if problem is None
-            else status.StateDir(writable=False, reason=problem[1], error=problem[2]),
-        )
-
-    def _auth_status(self) -> status.Auth:
-        ring = self.core.keyring
-        offset = self.clock_offset
-        return status.Auth(
-            mode=ring.mode if ring.keyed else "open",
-            primary=ring.primary,
-            keys=tuple(sorted(ring.keys)),
-            received=dict(self.core.counters.verified),
-            ssdp_interop=self.core.ssdp_interop,
-            unknown=tuple(
-                status.UnknownKey(
-                    s.kid, s.address, s.count, s.first_seen + offset, s.last_seen + offset
-                )
-                for s in self.unknown_keys.recent(time.monotonic())
-            ),
-        )
-
-    def _conflict_status(self) -> status.Conflict | None:
-        c = self.core.conflict
-        if c is None:
-            return None
-        return status.Conflict(c.address, c.boot_id, c.last_seen + self.clock_offset, c.count)
-
-    def _recent_errors(self, now: float) -> int:
-        """Callback failures within the last ERROR_WINDOW (older ones are forgotten)."""
-        while self._errors and self._errors[0] < now - ERROR_WINDOW:
-            self._errors.popleft()
-        return len(self._errors)
-
-    def _error_status(self) -> status.Errors:
-        last = self._last_error
-        return status.Errors(
-            recent=self._recent_errors(time.time()),
-            last=None if last is None else last[1],
-            last_at=None if last is None else last[0],
-            # Not a crash, but as bad: the fleet cannot see our services.
-            persistent=self.core.announce_error,
-        )
-
-    def _addressing_status(self) -> status.Addressing:
-        m = self.addressing
-        if m is None:
-            return status.Addressing()
-        return status.Addressing(
-            mode="auto",
-            state=m.state.value,
-            address=str(m.bound) if m.bound else None,
-            conflicts=tuple(
-                status.AddressConflict(str(c.ip), c.other_mac, c.kept, c.phase)
-                for c in list(m.conflicts)[-10:]
-            ),
-            conflicts_total=m.conflicts_total,
+            robot_id_conflict=reporting.conflict(core, self.clock_offset),
+            # A persistent error is not a crash, but as bad: the fleet cannot see our services.
+            errors=self.failures.status(core.announce_error),
+            state=reporting.state_dir(self.out.problem),
         )
 
 
-async def _amain(cfg: Config) -> None:
+async def _amain(cfg: Config, host: Host) -> None:
     store = Store(cfg.state_dir)
     try:
-        layer = DiscoveryLayer(cfg, store)
+        layer = DiscoveryLayer(cfg, store, host)
         await layer.run()
     finally:
         store.close()
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, host: Host | None = None) -> int:
+    """The discovery layer (`host`: what its supervisor gave it; None: it runs alone)."""
     try:
         cfg = from_args(argv)
     except SdfrError as exc:
@@ -748,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logs.setup("discovery", cfg.log_level, cfg.log_format)
     try:
-        asyncio.run(_amain(cfg))
+        asyncio.run(_amain(cfg, host or Host()))
     except SdfrError as exc:
         log.error("%s", exc)
         return 2

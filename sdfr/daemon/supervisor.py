@@ -2,30 +2,28 @@
 
 By default (`--layers threads`) the API layer and the discovery layer are two
 threads of this process, each running its own event loop, sharing only the
-store in the state directory: one interpreter and one copy of the code, half
-the memory of processes. A layer whose main ends (an exception, a bad start)
+store in the state directory: one interpreter and one copy of the code, less
+memory than processes. A layer whose main ends (an exception, a bad start)
 is started again alone, in a new thread, while the other serves. A hung layer
 (its beats stop) cannot be killed alone: the supervisor stops the other one
 and starts sdfrd again in the same process (exec), its state kept.
 
-With `--layers processes` they are separate processes so that either can be
-killed, crash or hang while the other goes on. The supervisor imports both layers' code once
-and forks each layer from itself (no exec): the interpreter and every module
-the layers load are then one set of pages shared by the three processes
-(`gc.freeze` keeps the collector from writing to them), so the tree costs
-little more than one process, and a restart is a fork, not a new
-interpreter. The supervisor itself runs no event loop and opens no database
-while the layers run: it sleeps in `select` until a layer's first beat, a
-child's exit, a signal, or its next check (a few seconds away), so it stays
-the one part that nothing can hang. The supervisor restarts a layer that exits
-without being asked to, with a growing back-off, and one whose heartbeat (a
-byte every 5 s on a pipe) stops for STALL_AFTER seconds: a hung or stopped
-process is killed and started again. A layer that cannot start at all (exit
-status 2: an address that is not this machine's, permission denied, a bad
-configuration) ends sdfrd at once with status 2, since a restart cannot fix
-it. It stops both layers on SIGTERM. If the supervisor itself is killed, the
-kernel kills both layers (PR_SET_PDEATHSIG), so a `kill -9` of sdfrd is a
-silent departure. Under systemd (Type=notify) it says READY=1 once both
+With `--layers processes` they are separate processes so that either can be killed, crash
+or hang while the other goes on. The supervisor imports both layers' code once and forks
+each layer from itself (no exec): the interpreter and every module the layers load are
+then one set of pages shared by the three processes (`gc.freeze` keeps the collector from
+writing to them), so the tree costs little more than one process, and a restart is a fork,
+not a new interpreter. The supervisor itself runs no event loop and opens no database
+while the layers run: it sleeps in `select` until a layer's first beat, a child's exit, a
+signal, or its next check (a few seconds away), so it stays the one part that nothing can
+hang. The supervisor restarts a layer that exits without being asked to, with a growing
+back-off, and one whose heartbeat (a byte on a pipe at each of its ticks:
+sdfr.daemon.channel.Host) stops for STALL_AFTER seconds: a hung or stopped process is
+killed and started again. A layer that cannot start at all (exit status 2: an address that
+is not this machine's, permission denied, a bad configuration) ends sdfrd at once with
+status 2, since a restart cannot fix it. It stops both layers on SIGTERM. If the
+supervisor itself is killed, the kernel kills both layers (PR_SET_PDEATHSIG), so a
+`kill -9` of sdfrd is a silent departure. Under systemd (Type=notify) it says READY=1 once both
 layers beat, and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
 """
 
@@ -52,6 +50,7 @@ from pathlib import Path
 from sdfr import keystore, netif, procfs, wifi
 from sdfr.config import Config, from_args, to_args
 from sdfr.daemon import logs, notify
+from sdfr.daemon.channel import Host, Stopper
 from sdfr.errors import SdfrError
 from sdfr.store import Store
 
@@ -76,13 +75,14 @@ EXIT_CANNOT_START = 2
 _PR_SET_PDEATHSIG = 1
 LOCK_NAME = "sdfrd.lock"
 
-#: A layer's entry point: its flags in, its exit status out.
-Main = Callable[[list[str]], int]
+#: A layer's entry point: its flags and its Host in, its exit status out.
+Main = Callable[[list[str], Host], int]
 
 
 def _set_comm(name: str) -> None:
     """Name the calling thread (a process's main thread names the process) in ps and
-    /proc/PID/comm, as prctl(PR_SET_NAME) does, without loading ctypes (0.37 MiB)."""
+    /proc/PID/comm, as prctl(PR_SET_NAME) does, without loading ctypes (which threads mode
+    never needs otherwise)."""
     with contextlib.suppress(OSError):
         Path(f"/proc/self/task/{threading.get_native_id()}/comm").write_text(name)
 
@@ -107,16 +107,16 @@ def preload() -> dict[str, Main]:
     return mains
 
 
-def _run_main(layer: Layer, args: list[str]) -> int:
+def _run_main(layer: Layer, args: list[str], host: Host) -> int:
     """The layer's main, under cProfile when PROFILE_ENV names a directory."""
     where = os.environ.get(PROFILE_ENV)
     if not where:
-        return layer.main(args)
+        return layer.main(args, host)
     import cProfile
 
     profile = cProfile.Profile()
     try:
-        return profile.runcall(layer.main, args)
+        return profile.runcall(layer.main, args, host)
     finally:
         profile.dump_stats(str(Path(where) / f"{layer.name}-{os.getpid()}.pstats"))
 
@@ -164,17 +164,17 @@ class LayerThread:
     exit status once its main returned. It has no `kill`: a hung thread ends only with the
     whole process (Supervisor.restart_daemon)."""
 
-    def __init__(self, layer: Layer, target: Callable[[notify.Stopper], int]) -> None:
+    def __init__(self, layer: Layer, target: Callable[[Stopper], int]) -> None:
         self.pid = os.getpid()
         self.returncode: int | None = None
-        self.stopper = notify.Stopper()
+        self.stopper = Stopper()
         self._done = threading.Event()
         self._thread = threading.Thread(
             target=self._run, args=(target,), name=f"sdfrd-{layer.name}", daemon=True
         )
         self._thread.start()
 
-    def _run(self, target: Callable[[notify.Stopper], int]) -> None:
+    def _run(self, target: Callable[[Stopper], int]) -> None:
         try:
             self.returncode = target(self.stopper)
         finally:
@@ -313,11 +313,10 @@ class Supervisor:
             os.close(devnull)
             for key in [k for k in os.environ if k.startswith(("NOTIFY_", "WATCHDOG_"))]:
                 del os.environ[key]
-            os.environ[notify.HEARTBEAT_ENV] = str(beat_w)
             root = logging.getLogger()
             for handler in root.handlers[:]:  # the layer sets up its own format
                 root.removeHandler(handler)
-            code = _run_main(layer, list(self.args))
+            code = _run_main(layer, list(self.args), Host(beat_w))
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
         except BaseException:
@@ -329,13 +328,12 @@ class Supervisor:
                 sys.stderr.flush()
         return code
 
-    def _run_thread(self, layer: Layer, beat_w: int, stopper: notify.Stopper) -> int:
+    def _run_thread(self, layer: Layer, beat_w: int, stopper: Stopper) -> int:
         """In the layer's thread: run it, its exit status (the thread then ends)."""
         code = 1
         try:
             _set_comm(procfs.LAYER_COMM[layer.name])
-            notify.host_thread(beat_w, stopper)
-            code = _run_main(layer, list(self.args))
+            code = _run_main(layer, list(self.args), Host(beat_w, stopper))
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
         except BaseException:

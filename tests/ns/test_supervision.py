@@ -187,11 +187,11 @@ from sdfr.daemon import main
 made = Path(os.environ["FAULT_MADE"])
 real = discovery._amain
 
-async def faulty(cfg):
+async def faulty(*args):
     if made.exists():
-        return await real(cfg)
+        return await real(*args)
     made.write_text(os.environ["FAULT"])
-    task = asyncio.ensure_future(real(cfg))
+    task = asyncio.ensure_future(real(*args))
     await asyncio.sleep(2.0)
     if os.environ["FAULT"] == "hang":
         time.sleep(3600)

@@ -70,7 +70,7 @@ async def test_a_start_that_fails_is_never_reported_up(cfg: Config, store: Store
         layer = DiscoveryLayer(cfg, store)
         with pytest.raises(SdfrError, match=f"describe: cannot listen on {host}:{port}"):
             await asyncio.wait_for(layer.run(), 10)
-        for sock in (layer.sock, layer.control, layer._status_sock):
+        for sock in (layer.sock, layer.control, layer.out.to_api.sock):
             sock.close()
     status, health = await _health(cfg, store)
     assert (status, health["discovery"]) == (503, "starting"), health

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import asyncio
 import os
 import socket
-import threading
 from pathlib import Path
 
 import pytest
@@ -53,55 +51,3 @@ def test_watchdog_interval_is_for_this_process_only(monkeypatch: pytest.MonkeyPa
     assert notify.watchdog_interval() == 3.0
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid() + 1))
     assert notify.watchdog_interval() is None
-
-
-def test_beat_writes_to_the_pipe_it_is_given(monkeypatch: pytest.MonkeyPatch) -> None:
-    r, w = os.pipe2(os.O_NONBLOCK)
-    try:
-        monkeypatch.setenv(notify.HEARTBEAT_ENV, str(w))
-        notify.beat()
-        notify.beat()
-        assert os.read(r, 10) == b".."
-        for _ in range(70000):  # a full pipe never blocks a layer
-            notify.beat()
-    finally:
-        os.close(r)
-        os.close(w)
-
-
-def test_a_layer_thread_beats_on_its_own_pipe_and_stops_on_its_supervisors_word() -> None:
-    """--layers threads: each layer thread has its pipe and its Stopper; a stop asked before
-    the layer left its callback still reaches it."""
-    got: dict[str, object] = {}
-
-    def layer(name: str, stopper: notify.Stopper, early: bool) -> None:
-        r, w = os.pipe2(os.O_NONBLOCK)
-        notify.host_thread(w, stopper)
-        notify.beat()
-        got[f"{name} beat"] = os.read(r, 10)
-
-        async def run() -> None:
-            stop = asyncio.Event()
-            if early:
-                stopper.stop()  # before the callback is left
-            notify.on_stop(asyncio.get_running_loop(), stop.set)
-            ready.set()
-            await asyncio.wait_for(stop.wait(), 10)
-
-        asyncio.run(run())
-        got[f"{name} stopped"] = True
-        os.close(r)
-        os.close(w)
-
-    ready = threading.Event()
-    stopper = notify.Stopper()
-    t = threading.Thread(target=layer, args=("a", stopper, False))
-    t.start()
-    assert ready.wait(10)
-    stopper.stop()  # from another thread
-    t.join(10)
-    early = threading.Thread(target=layer, args=("b", notify.Stopper(), True))
-    early.start()
-    early.join(10)
-    assert got == {"a beat": b".", "a stopped": True, "b beat": b".", "b stopped": True}
-    assert not t.is_alive() and not early.is_alive()

@@ -26,7 +26,8 @@ from sdfr import auth, cli, keystore, wire
 from sdfr.api import App, Runner, UnixSite, create_app
 from sdfr.auth import Keyring
 from sdfr.config import Config
-from sdfr.daemon.discovery import CONTROL_NAME, DiscoveryLayer
+from sdfr.daemon.channel import CONTROL_SOCKET
+from sdfr.daemon.discovery import DiscoveryLayer
 from sdfr.keystore import StoredKeyring
 from sdfr.model import service_digest
 from sdfr.store import Store
@@ -75,12 +76,12 @@ def _layer(cfg: Config, store: Store) -> Iterator[DiscoveryLayer]:
     layer = DiscoveryLayer(cfg, store)
     # Its loop does not run here: the API layer is to read the status file it writes, not ask
     # it on its control socket (and wait for an answer that never comes).
-    (cfg.state_dir / CONTROL_NAME).unlink()
+    (cfg.state_dir / CONTROL_SOCKET).unlink()
     layer._starting = False  # as after its start, which needs the loop
     try:
         yield layer
     finally:
-        for sock in (layer.sock, layer.control, layer._status_sock):
+        for sock in (layer.sock, layer.control, layer.out.to_api.sock):
             sock.close()
         layer.describe.close()
 
