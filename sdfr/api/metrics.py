@@ -71,6 +71,12 @@ def metrics_text(state: ApiState) -> str:
         out.append(f"# HELP {name} {text}")
         out.append(f"# TYPE {name} {kind}")
 
+    def per_robot(name: str, text: str, values: list[tuple[str, float]]) -> None:
+        """A gauge with one sample a robot (its id the label)."""
+        family(name, "gauge", text)
+        for robot_id, value in values:
+            out.append(f'{name}{{robot_id="{_label(robot_id)}"}} {value!r}')
+
     family(
         "sdfr_datagrams_total",
         "counter",
@@ -97,23 +103,16 @@ def metrics_text(state: ApiState) -> str:
     reachable = sum(1 for p in peers if p.reachable)
     out.append(f'sdfr_peers{{state="reachable"}} {reachable}')
     out.append(f'sdfr_peers{{state="known"}} {len(peers)}')
-    family(
+    per_robot(
         "sdfr_peer_indicator",
-        "gauge",
         "Connection indicator of each reachable robot: the share of recent pings answered.",
+        [(p.robot_id, p.indicator) for p in peers if p.reachable and p.indicator is not None],
     )
-    for p in peers:
-        if p.reachable and p.indicator is not None:
-            out.append(f'sdfr_peer_indicator{{robot_id="{_label(p.robot_id)}"}} {p.indicator}')
-    family(
+    per_robot(
         "sdfr_peer_rtt_seconds",
-        "gauge",
         "Smoothed round-trip time of the pings to each reachable robot.",
+        [(p.robot_id, p.rtt_ms / 1000) for p in peers if p.reachable and p.rtt_ms is not None],
     )
-    for p in peers:
-        if p.reachable and p.rtt_ms is not None:
-            rtt = p.rtt_ms / 1000
-            out.append(f'sdfr_peer_rtt_seconds{{robot_id="{_label(p.robot_id)}"}} {rtt!r}')
     family("sdfr_local_services", "gauge", "Services this robot publishes.")
     out.append(f"sdfr_local_services {len(local)}")
     family("sdfr_discovery_up", "gauge", "1 when the discovery layer is alive and heartbeating.")
