@@ -1,14 +1,16 @@
 """Process-level adapters: the supervisor and the two layers it runs.
 
 `main` is sdfrd's entry point (the `sdfrd` command, `python -m sdfr.daemon`). Before anything
-imports them it keeps OpenSSL out of the daemon: `ssl` (which asyncio loads only to offer
-TLS) and `_hashlib` (hashlib's OpenSSL backend) map libssl and libcrypto, about 4 MiB of
-every sdfrd's process tree, for nothing sdfrd does. hashlib then uses CPython's own SHA-256
-and BLAKE2, and hmac its pure-Python HMAC (about 5 us a signed datagram instead of 2). A
-library that needs OpenSSL (pyroute2, with `--addressing auto`) gets it: `allow_openssl`.
-It also keeps out `typing_extensions`, which msgspec uses when it is installed and does
-without (typing's own `get_type_hints`, `Required` and `NotRequired` since Python 3.11, and
-msgspec's fallback on 3.10): 0.35 MiB less for each daemon (USS, measured with netlab).
+imports them it keeps out of the daemon the modules it does not need (NOT_LOADED), whose
+memory every daemon would carry (docs/fleet-behaviour.md has the figures):
+
+- OpenSSL: `ssl` (which asyncio loads only to offer TLS) and `_hashlib` (hashlib's OpenSSL
+  backend) map libssl and libcrypto for nothing sdfrd does. hashlib then uses CPython's own
+  SHA-256 and BLAKE2, and hmac its pure-Python HMAC (slower per signed datagram). A
+  library that needs OpenSSL (pyroute2, with `--addressing auto`) gets it: `allow_openssl`.
+- `typing_extensions`, which msgspec uses when it is installed and does without (typing's
+  own `get_type_hints`, `Required` and `NotRequired` since Python 3.11, and msgspec's
+  fallback on 3.10).
 
 First of all, the `sdfrd` command pins glibc malloc's mmap threshold (`pin_malloc`).
 """
@@ -30,13 +32,12 @@ def pin_malloc() -> None:
 
     glibc raises its mmap threshold to the size of any mmap-ed block that is freed, and its
     trim threshold to twice that, in every thread's heap. Reading a large .pyc, resizing the
-    interned-strings table and asyncio's 256 KiB socket reads (each freed whole when the
-    peer closes) raise them to ~0.25 MiB and ~0.5 MiB, after which each heap keeps up to
-    0.5 MiB it has freed: 0.5 MiB of a 16 MiB daemon with 100 services (measured alone in a
-    namespace; docs/fleet-behaviour.md). A fixed threshold turns the adjustment off. The
-    tunables are read when the process starts, hence the exec (same pid, same argv; ~36 ms);
-    a user's own GLIBC_TUNABLES or MALLOC_* settings are left alone, as is a C library that
-    is not glibc.
+    interned-strings table and asyncio's large socket reads (each freed whole when the peer
+    closes) raise them, after which each heap keeps that much memory it has freed, for
+    good: a share of the daemon's memory (docs/fleet-behaviour.md). A fixed threshold turns
+    the adjustment off. The tunables are read when the process starts, hence the exec (same
+    pid, same argv); a user's own GLIBC_TUNABLES or MALLOC_* settings are left alone, as is
+    a C library that is not glibc.
     """
     if os.environ.get("GLIBC_TUNABLES") or any(k.startswith("MALLOC_") for k in os.environ):
         return
