@@ -1,229 +1,41 @@
-"""Durable state shared by the two layers: SQLite in WAL mode.
-
-Owners: the API layer writes local registrations (`local_services`, the local
-version); the discovery layer writes the history map (`peers`) and its status.
-Each reads what the other writes. WAL lets readers proceed while a writer
-commits. Commits run with synchronous=NORMAL (they survive a crash of the process),
-but a durable one (`apply(..., durable=True)`: what the API answers 2xx for) runs
-with synchronous=FULL: SQLite fsyncs the write-ahead log before the commit becomes
-visible, so an acknowledged registration is on disk and survives a power cut, and one
-whose fsync failed was never seen by any reader (nor announced). The history map,
-rebuilt from the air in seconds, is not synced.
-
-Owners of registrations: each row keeps the SHA-256 of its owner token and, when it was
-published over the unix socket, the publishing user's uid; an unpublish or renewal by
-anyone else is refused (`NotOwner`), root's on the unix socket excepted. The token itself
-is never stored.
-
-Files: the state directory is made private (0700 when created; an existing one loses its
-bits for others and the group's write), and the database and its -wal and -shm are 0600,
-whatever the umask.
-
-Leases: a registration may carry a ttl; its row keeps the ttl and the Unix time it expires
-(`expires`), so a lease outlives a restart of the daemon and one that ran out while the daemon
-was down is withdrawn when it starts (`expire_overdue`).
-
-The event log (`events`): both layers append the changes they make, in the transaction that
-makes them, for `GET /events`. An event's id is one more than the last one's, or the time in
-microseconds when that is larger: ids grow across restarts, and also past events a power cut
-lost (which were never fsynced) as long as the clock goes forward. The log keeps the last
-EVENT_LOG_MAX events; `meta.events_pruned` is the largest id dropped, so a reader asking for
-events after an older id learns that some are gone.
-"""
+"""The Store: one connection to the state database (the package's docstring says what it holds
+and who writes what)."""
 
 from __future__ import annotations
 
 import contextlib
-import errno
-import hashlib
-import hmac
 import json
 import os
 import sqlite3
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from sdfr import events as event_log
-from sdfr.errors import SdfrError
 from sdfr.events import Event
 from sdfr.model import PeerRecord, Service
+from sdfr.store.files import SCHEMA, SCHEMA_VERSION, private_db, private_dir
+from sdfr.store.records import (
+    DAEMON,
+    Add,
+    Caller,
+    Expire,
+    Lease,
+    NotOwner,
+    Op,
+    Remove,
+    Renew,
+    StoredEvent,
+    StoreError,
+    write_error,
+)
 from sdfr.wire import MAX_BOOT_ID
 
-SCHEMA_VERSION = 3
 #: Events the log keeps (each is at most a few KiB: see sdfr.events.MAX_SERVICES_JSON).
 EVENT_LOG_MAX = 4096
-#: The API layer's datagram socket in the state dir, to which the discovery layer sends its
-#: status every second: a heartbeat that needs no disk, so a full state directory is not
-#: mistaken for a dead discovery layer.
-STATUS_SOCKET = "status.sock"
 #: Boot ids count seconds from 2020-01-01 UTC (BOOTID.UPNP.ORG holds 31 bits: until 2088).
 BOOT_EPOCH = 1577836800
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS local_services (
-    id TEXT PRIMARY KEY,
-    seq INTEGER NOT NULL,
-    body TEXT NOT NULL,
-    ttl REAL,
-    expires REAL,
-    owner_hash TEXT,
-    owner_uid INTEGER
-);
-CREATE TABLE IF NOT EXISTS events (
-    id INTEGER PRIMARY KEY,
-    kind TEXT NOT NULL,
-    body TEXT NOT NULL
-);
-CREATE INDEX IF NOT EXISTS local_services_seq ON local_services(seq);
-CREATE TABLE IF NOT EXISTS peers (
-    robot_id TEXT PRIMARY KEY,
-    address TEXT NOT NULL,
-    location TEXT NOT NULL,
-    boot_id INTEGER NOT NULL,
-    version INTEGER NOT NULL,
-    digest TEXT NOT NULL,
-    reachable INTEGER NOT NULL,
-    first_seen REAL NOT NULL,
-    last_seen REAL NOT NULL,
-    indicator REAL,
-    rtt_ms REAL,
-    pings INTEGER NOT NULL DEFAULT 0,
-    services TEXT NOT NULL
-);
-"""
-
-
-class StoreError(SdfrError):
-    """The state directory cannot be used."""
-
-
-class NotOwner(StoreError):
-    """A change of a registration asked by someone other than its owner."""
-
-
-class StateWriteError(StoreError):
-    """A write to the state directory failed: `reason` is full, read-only or error."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
-def write_reason(code: int | None, text: str = "") -> str:
-    """Why a write failed, from its errno or (SQLite says it in words) its message: full,
-    read-only or error."""
-    text = text.lower()
-    if code in (errno.ENOSPC, errno.EDQUOT) or "full" in text:
-        return "full"
-    if code == errno.EROFS or "readonly" in text or "read-only" in text:
-        return "read-only"
-    return "error"
-
-
-def write_error(where: Path, exc: BaseException) -> StateWriteError:
-    """A write failure, classified: a full disk, a read-only one, or something else."""
-    reason = write_reason(getattr(exc, "errno", None), str(exc))
-    if reason == "full":
-        return StateWriteError(reason, f"the state directory {where} is full ({exc})")
-    if reason == "read-only":
-        return StateWriteError(reason, f"the state directory {where} is read-only ({exc})")
-    return StateWriteError(reason, f"cannot write the state directory {where}: {exc}")
-
-
-def hash_token(token: str) -> str:
-    """What the store keeps of an owner token: its SHA-256, in hex."""
-    return hashlib.sha256(token.encode()).hexdigest()
-
-
-@dataclass(frozen=True, slots=True)
-class Caller:
-    """Who publishes, or asks to change a registration: the hash of the owner token it
-    presented (None: none) and, on the unix socket, its uid (None: not known, e.g. TCP)."""
-
-    token_hash: str | None = None
-    uid: int | None = None
-
-    def owns(self, token_hash: str | None, uid: int | None) -> bool:
-        """Whether it may change a registration whose owner is (`token_hash`, `uid`): its
-        token's, its user's (root's: any); one stored before registrations had owners
-        (both None) is anyone's."""
-        if token_hash is None and uid is None:
-            return True
-        if self.uid is not None and (self.uid == 0 or self.uid == uid):
-            return True
-        return (
-            self.token_hash is not None
-            and token_hash is not None
-            and hmac.compare_digest(self.token_hash, token_hash)
-        )
-
-
-#: The daemon itself (an expiry, a test): may change anything.
-DAEMON = Caller(uid=0)
-
-
-@dataclass(frozen=True, slots=True)
-class Add:
-    """Register a service; with a ttl (seconds), as a lease that ends at `now + ttl`; owned
-    by `owner` (its token's hash, its uid; neither: anyone's)."""
-
-    service: Service
-    ttl: float | None = None
-    owner: Caller = Caller()
-
-
-@dataclass(frozen=True, slots=True)
-class Remove:
-    """Unpublish a service (NotOwner unless `caller` owns it)."""
-
-    service_id: str
-    caller: Caller = DAEMON
-
-
-@dataclass(frozen=True, slots=True)
-class Renew:
-    """Extend a lease to `now + ttl` (its own ttl when None); with `set_ttl`, make `ttl` the
-    lease's ttl (None: no lease any more): a publish again. NotOwner unless `caller` owns it."""
-
-    service_id: str
-    ttl: float | None = None
-    set_ttl: bool = False
-    caller: Caller = DAEMON
-
-
-@dataclass(frozen=True, slots=True)
-class Expire:
-    """Withdraw a service whose lease ran out, unless it was renewed since: `expires` is
-    the end its owner last set."""
-
-    service_id: str
-    expires: float
-
-
-#: A write of local registrations.
-Op = Add | Remove | Renew | Expire
-
-
-@dataclass(frozen=True, slots=True)
-class Lease:
-    """A registration's lease: its ttl and when it ends (Unix time)."""
-
-    service_id: str
-    ttl: float
-    expires: float
-
-
-@dataclass(frozen=True, slots=True)
-class StoredEvent:
-    """A row of the event log: its id, kind and the JSON `GET /events` sends."""
-
-    id: int
-    kind: str
-    body: str
 
 
 def _service_from_row(body: str) -> Service:
@@ -237,47 +49,17 @@ def _dumps(obj: Any) -> str:
 
 #: PRAGMA synchronous of an ordinary commit, and of a durable one (fsynced before visible).
 _NORMAL, _FULL = 1, 2
-#: Bits a state directory made by hand loses: everything for others, write for the group
-#: (which may be given the API socket: docs/deploy.md).
-_NOT_FOR_OTHERS = 0o027
-
-
-def _private_dir(path: Path) -> None:
-    """Create `path` (0700), or take from an existing one what others may do with it."""
-    try:
-        path.mkdir(mode=0o700, parents=True, exist_ok=True)
-    except OSError as exc:
-        raise StoreError(f"state_dir: cannot create {path}: {exc.strerror}") from None
-    with contextlib.suppress(OSError):  # (not ours to change: used as it is)
-        mode = path.stat().st_mode & 0o7777
-        if mode & _NOT_FOR_OTHERS:
-            path.chmod(mode & ~_NOT_FOR_OTHERS)
-
-
-def _private_db(path: Path) -> None:
-    """Create the database file 0600 before SQLite opens it (SQLite gives the -wal and -shm
-    it creates the database's mode), and take group and others' bits from what exists."""
-    try:
-        os.close(os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600))
-    except OSError as exc:
-        raise StoreError(f"state_dir: cannot create {path}: {exc.strerror}") from None
-    for name in ("", "-wal", "-shm", "-journal"):
-        with contextlib.suppress(OSError):
-            each = path.with_name(path.name + name)
-            mode = each.stat().st_mode & 0o7777
-            if mode & 0o077:
-                each.chmod(mode & ~0o077)
 
 
 class Store:
     """One connection to the state database; each process opens its own."""
 
     def __init__(self, state_dir: Path) -> None:
-        _private_dir(state_dir)
+        private_dir(state_dir)
         if not os.access(state_dir, os.W_OK):
             raise StoreError(f"state_dir: {state_dir} is not writable")
         self.path = state_dir / "state.db"
-        _private_db(self.path)
+        private_db(self.path)
         self._synchronous = _NORMAL
         try:
             self._db = sqlite3.connect(
@@ -285,7 +67,7 @@ class Store:
             )
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
-            self._db.executescript(_SCHEMA)
+            self._db.executescript(SCHEMA)
             self._migrate()
         except sqlite3.DatabaseError as exc:
             raise StoreError(
