@@ -1,8 +1,11 @@
-"""The discovery layer's process: owns the UDP socket and the clock, runs the protocol core.
+"""The discovery layer: owns the UDP socket and the clock, runs the protocol core.
 
-This is the only place of the discovery layer that reads time or touches a
-socket; everything it decides comes from `sdfr.protocol.Core`. It persists
-the history map to the shared store and reads local registrations from it.
+Everything it decides comes from `sdfr.protocol.Core`; this module carries it out: datagrams
+in and out, the core's timer, the description server's address. It persists the history map
+to the shared store, reads the local registrations and the keyring when the API layer says
+they changed (sdfr.daemon.channel) or at its slow ticks, and sends its status. Its parts:
+`sockets` (the multicast socket, a machine's one timer), `reporting` (the status record and
+where it goes), `autoaddr` (`--addressing auto` only).
 """
 
 from __future__ import annotations
