@@ -78,14 +78,8 @@ from sdfr.protocol.config import (
     Outgoing,
     answers_beacon,
 )
-from sdfr.protocol.core import (
-    Core,
-)
-from sdfr.protocol.peers import (
-    Conflict,
-    Counters,
-    Peer,
-)
+from sdfr.protocol.core import Core
+from sdfr.protocol.peers import Conflict, Counters, Peer
 
 __all__ = [
     "ADDR_CHALLENGE_BURST",

@@ -7,20 +7,10 @@ import math
 
 from sdfr import wire
 from sdfr.protocol import sending
-from sdfr.protocol.config import (
-    CHALLENGE_PAD,
-    MAX_PINGS,
-    Addr,
-    answers_beacon,
-)
+from sdfr.protocol.config import CHALLENGE_PAD, MAX_PINGS, Addr, answers_beacon
 from sdfr.protocol.peers import Peer, _GroupPing, _Ping
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    WANT_ALL,
-    WIRE_COMPACT,
-    Alive,
-    Discovery,
-)
+from sdfr.wire import WANT_ALL, WIRE_COMPACT, Alive, Discovery
 
 #: A peer's smoothed RTT is stored (and listed) again once it moved from the stored one by more
 #: than this share of it and this many seconds: a true figure without a write per round trip.

@@ -8,21 +8,10 @@ from dataclasses import replace
 from sdfr import wire
 from sdfr.auth import Sealed
 from sdfr.protocol import beacons, sending
-from sdfr.protocol.config import (
-    CHALLENGE_PAD,
-    CHALLENGE_RATE,
-    MAX_PINGS,
-    Addr,
-)
+from sdfr.protocol.config import CHALLENGE_PAD, CHALLENGE_RATE, MAX_PINGS, Addr
 from sdfr.protocol.peers import Conflict, Peer, _Ping
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    WIRE_COMPACT,
-    Alive,
-    Discovery,
-    Origin,
-    Response,
-)
+from sdfr.wire import WIRE_COMPACT, Alive, Discovery, Origin, Response
 
 #: The source of a datagram sent from no address (see `on_own_id`).
 UNSPECIFIED = "0.0.0.0"

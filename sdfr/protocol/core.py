@@ -11,23 +11,10 @@ from sdfr import auth, wire
 from sdfr.auth import Keyring
 from sdfr.model import PeerRecord, Service, service_digest
 from sdfr.protocol import beacons, challenges, plain, sending, timers, trust, updates
-from sdfr.protocol.config import (
-    MAX_REPLY_TO,
-    Addr,
-    Outgoing,
-    answers_beacon,
-)
+from sdfr.protocol.config import MAX_REPLY_TO, Addr, Outgoing, answers_beacon
 from sdfr.protocol.peers import Peer
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    WANT_ALL,
-    Alive,
-    Byebye,
-    Discovery,
-    Reject,
-    Response,
-    Update,
-)
+from sdfr.wire import WANT_ALL, Alive, Byebye, Discovery, Reject, Response, Update
 
 _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: "alive"}
 

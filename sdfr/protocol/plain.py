@@ -7,14 +7,9 @@ import ipaddress
 
 from sdfr import auth
 from sdfr.protocol import sending
-from sdfr.protocol.config import (
-    Addr,
-)
+from sdfr.protocol.config import Addr
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    Discovery,
-    Response,
-)
+from sdfr.wire import Discovery, Response
 
 
 def plain_search_allowed(core: CoreState, data: bytes) -> bool:

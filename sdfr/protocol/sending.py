@@ -4,13 +4,9 @@ and never more bytes to an address that has not proven a round trip than it sent
 from __future__ import annotations
 
 from sdfr import auth, wire
-from sdfr.protocol.config import (
-    Addr,
-)
+from sdfr.protocol.config import Addr
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    Discovery,
-)
+from sdfr.wire import Discovery
 
 #: The header that pads a challenge (`CHALLENGE_PAD` bytes in all).
 PAD_HEADER = b"X-SDFR-PAD: "

@@ -6,9 +6,7 @@ from __future__ import annotations
 import math
 
 from sdfr.protocol import beacons, challenges, trust, updates
-from sdfr.protocol.config import (
-    CHALLENGE_RATE,
-)
+from sdfr.protocol.config import CHALLENGE_RATE
 from sdfr.protocol.state import CoreState
 
 

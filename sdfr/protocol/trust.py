@@ -8,18 +8,10 @@ import math
 from sdfr import wire
 from sdfr.auth import Sealed
 from sdfr.protocol import beacons, challenges
-from sdfr.protocol.config import (
-    CHALLENGE_GAP,
-    MAX_PEERS,
-    MAX_UNPROVEN,
-    Addr,
-)
+from sdfr.protocol.config import CHALLENGE_GAP, MAX_PEERS, MAX_UNPROVEN, Addr
 from sdfr.protocol.peers import Peer
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    Origin,
-    Response,
-)
+from sdfr.wire import Origin, Response
 
 
 def gate(

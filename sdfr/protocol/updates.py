@@ -22,12 +22,7 @@ from sdfr.protocol.config import (
 )
 from sdfr.protocol.peers import Peer, _Fetch
 from sdfr.protocol.state import CoreState
-from sdfr.wire import (
-    WANT_ALL,
-    Discovery,
-    Reject,
-    Update,
-)
+from sdfr.wire import WANT_ALL, Discovery, Reject, Update
 
 
 def want_current(core: CoreState, peer: Peer, now: float, *, soon: bool) -> None:

@@ -2,16 +2,10 @@
 
 from __future__ import annotations
 
-from sdfr.api.handlers.request import (
-    only_params,
-    query_flag,
-)
+from sdfr.api.handlers.request import only_params, query_flag
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import json_response
-from sdfr.api.state import (
-    neighbor_json,
-    state_of,
-)
+from sdfr.api.state import neighbor_json, state_of
 from sdfr.errors import ValidationError
 from sdfr.model import PeerRecord
 

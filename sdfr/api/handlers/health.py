@@ -7,12 +7,7 @@ import time
 from sdfr import __version__
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import json_response
-from sdfr.api.state import (
-    FAILING_AFTER,
-    ApiState,
-    DiscoveryState,
-    state_of,
-)
+from sdfr.api.state import FAILING_AFTER, ApiState, DiscoveryState, state_of
 from sdfr.status import DiscoveryStatus
 
 
