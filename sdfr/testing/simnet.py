@@ -301,7 +301,11 @@ class SimNet:
 def kind_of(data: bytes) -> str:
     """What a datagram is, in either wire form: "alive", "update" (a whole set's part),
     "delta", "byebye", "search", "ping", "fetch", "reply" (to a ping), "response" or "reject"."""
-    msg = wire.decode(data)
+    return kind_of_message(wire.decode(data))
+
+
+def kind_of_message(msg: wire.Message | wire.Reject) -> str:
+    """`kind_of` of a datagram already decoded."""
     if isinstance(msg, wire.Update):
         return "update" if msg.base is None else "delta"
     if isinstance(msg, wire.Discovery):

@@ -39,6 +39,7 @@ from sdfr import wire
 from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Addr
 from sdfr.testing.simnet import Node, SimNet
+from sdfr.testing.simnet import kind_of_message as kind
 
 OUTSIDER: Addr = ("10.1.0.66", 1900)
 VICTIM: Addr = ("10.1.0.77", 1900)
@@ -63,19 +64,6 @@ FINDINGS = ("reused-boot-set", "keyed-credit", "mirror-conflict", "late-old-answ
 
 class Violation(AssertionError):
     """An invariant does not hold; the message says which, where and when."""
-
-
-def kind(msg: wire.Message | wire.Reject) -> str:
-    """`sdfr.testing.simnet.kind_of` of a decoded datagram."""
-    if isinstance(msg, wire.Update):
-        return "update" if msg.base is None else "delta"
-    if isinstance(msg, wire.Discovery):
-        if msg.seq is not None:
-            return "ping"
-        return "fetch" if msg.want is not None and not msg.multicast else "search"
-    if isinstance(msg, wire.Response):
-        return "reply" if msg.seq is not None else "response"
-    return type(msg).__name__.lower()
 
 
 @dataclass
