@@ -98,7 +98,9 @@ class History:
     action_wall: float = 0.0
     #: Updates checks counted in the captures at the end: result, condition, window.
     deferred: list[tuple[CheckResult, Updates, float, float]] = field(default_factory=list)
-    _baseline: tuple[float, dict[str, dict[str, float]]] | None = None
+    _baseline: tuple[float, dict[str, dict[str, float]]] | None = field(
+        default=None, init=False, repr=False
+    )
 
     def window(self, index: int, ref: str | None) -> tuple[int, tuple[float, float]]:
         """The step that `ref` names looking back from step `index`, and its window."""
@@ -150,6 +152,7 @@ class StepContext(Context):
         }
 
     def text(self, names: Sequence[str]) -> str:
+        """The robots for a progress line: "all N" for the whole fleet."""
         if len(names) > 2 and set(names) == set(self.scenario.names):
             return f"all {len(names)}"
         return ", ".join(names)
