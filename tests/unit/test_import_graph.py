@@ -24,9 +24,7 @@ PACKAGES = ("sdfr", "netlab")
 
 #: Circles known today, each with who is removing it.  The test fails on a circle not listed
 #: here and on a listed one that is gone (or changed): delete its line when you break it.
-KNOWN: dict[frozenset[str], str] = {
-    frozenset({"sdfr.ros.core", "sdfr.ros.source"}): "issue 27, the sdfr/ros helper",
-}
+KNOWN: dict[frozenset[str], str] = {}
 
 
 def modules() -> dict[str, Path]:
