@@ -159,6 +159,11 @@ class Stopper:
             callback()
 
 
+#: The heartbeat pipe's bytes: a layer alive, and serving or still starting.
+SERVING = b"."
+STARTING = b","
+
+
 class Host:
     """What a layer is given by its supervisor: the pipe to beat on (None: it runs alone), and,
     for a layer that is a thread of sdfrd (`--layers threads`), its Stopper instead of the
@@ -168,14 +173,16 @@ class Host:
         self.beat_fd = beat_fd
         self.stopper = stopper
 
-    def beat(self) -> None:
-        """A heartbeat to the supervisor: one byte on the pipe. The supervisor restarts a
-        layer whose beats stop (a hung event loop, a SIGSTOP), which a process that is still
-        there would never be otherwise."""
+    def beat(self, starting: bool = False) -> None:
+        """A heartbeat to the supervisor: one byte on the pipe, STARTING while the layer is
+        alive but not yet serving (the discovery layer before it speaks on the fleet's
+        network), SERVING after. The supervisor restarts a layer whose beats stop (a hung
+        event loop, a SIGSTOP), which a process that is still there would never be
+        otherwise, and tells systemd READY=1 once every layer serves."""
         if self.beat_fd is None:
             return
         try:
-            os.write(self.beat_fd, b".")
+            os.write(self.beat_fd, STARTING if starting else SERVING)
         except BlockingIOError:  # the supervisor is behind reading: it has news enough
             pass
         except OSError:  # the supervisor is gone (the kernel ends us too: PDEATHSIG)

@@ -152,6 +152,7 @@ class DiscoveryLayer:
         self.core.start(time.monotonic())
         self._pump()
         self._starting = False
+        self.host.beat()  # serving: the supervisor may tell systemd READY=1 now
         self._write_status()
         log.info(
             "discovery up: robot %s fleet %d on %s (%s), boot %d; %d robots known from before",
@@ -185,7 +186,7 @@ class DiscoveryLayer:
     async def _periodic(self) -> None:
         tick = 0
         while True:
-            self.host.beat()
+            self.host.beat(starting=self._starting)
             await asyncio.sleep(STATUS_PERIOD)
             tick += 1
             self._guard("periodic duties", self._check_address)

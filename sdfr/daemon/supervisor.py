@@ -24,7 +24,8 @@ is not this machine's, permission denied, a bad configuration) ends sdfrd at onc
 status 2, since a restart cannot fix it. It stops both layers on SIGTERM. If the
 supervisor itself is killed, the kernel kills both layers (PR_SET_PDEATHSIG), so a
 `kill -9` of sdfrd is a silent departure. Under systemd (Type=notify) it says READY=1 once both
-layers beat, and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
+layers serve (the discovery layer beats "starting" until it speaks on the fleet's network),
+and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from pathlib import Path
 from sdfr import keystore, netif, procfs, wifi
 from sdfr.config import Config, from_args, to_args
 from sdfr.daemon import logs, notify
-from sdfr.daemon.channel import Host, Stopper
+from sdfr.daemon.channel import SERVING, Host, Stopper
 from sdfr.errors import SdfrError
 from sdfr.store import Store
 
@@ -244,6 +245,8 @@ class Layer:
     last_beat: float | None = None
     #: It beat at least once since sdfrd started: it can start.
     ever_up: bool = False
+    #: It said it serves (SERVING on its pipe) since it was started.
+    serving: bool = False
 
 
 class Supervisor:
@@ -284,6 +287,7 @@ class Supervisor:
             layer.proc = Child(pid)
         layer.beats = beats
         layer.last_beat = None
+        layer.serving = False
         layer.started = time.monotonic()
         # (Each layer's line a kind of its own: the log's RepeatFilter holds back a repeat.)
         log.info(
@@ -403,7 +407,7 @@ class Supervisor:
         for layer in self.layers:
             if layer.proc is None:
                 until = min(until, layer.restart_at)
-            elif layer.last_beat is None and layer.beats is not None:
+            elif not layer.serving and layer.beats is not None:
                 wait.append(layer.beats)
         if self.watchdog is not None:
             until = min(until, self._next_watchdog)
@@ -413,13 +417,13 @@ class Supervisor:
                 os.read(self._wake_r, 4096)
 
     def _tell_systemd(self, now: float) -> None:
-        up = all(layer.proc is not None and layer.last_beat is not None for layer in self.layers)
+        up = all(layer.proc is not None and layer.serving for layer in self.layers)
         if up and not self.ready:
             self.ready = True
             notify.notify("READY=1", f"STATUS=serving the API on {self.cfg.api}")
         elif not up and self.ready:
             self.ready = False
-            down = ", ".join(x.name for x in self.layers if x.proc is None or x.last_beat is None)
+            down = ", ".join(x.name for x in self.layers if x.proc is None or not x.serving)
             notify.notify(f"STATUS=restarting the {down} layer")
         if self.watchdog is not None and now >= self._next_watchdog:
             notify.notify("WATCHDOG=1")
@@ -429,9 +433,11 @@ class Supervisor:
         if layer.beats is None:
             return
         try:
-            if os.read(layer.beats, 4096):
+            beats = os.read(layer.beats, 4096)
+            if beats:
                 layer.last_beat = now
                 layer.ever_up = True
+                layer.serving = layer.serving or SERVING in beats
         except BlockingIOError:
             pass
 

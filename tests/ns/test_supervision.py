@@ -163,7 +163,7 @@ def test_systemd_notify_ready_watchdog_stopping(tmp_path: Path, daemons: list[Da
     daemons.append(d)
     manager.until("READY=1", 30)
     assert any(x.startswith("STATUS=serving the API on") for x in manager.got)
-    assert d.health() == "up"  # READY=1 only once both layers beat
+    assert d.health() == "up"  # READY=1 only once both layers serve (discovery not "starting")
     manager.got.clear()
     manager.until("WATCHDOG=1", 2.0)
     manager.got.clear()
