@@ -3,7 +3,7 @@
 The engine reads time and waits only through a `Clock`, and samples the fleet with
 `Clock.every`; a `VirtualClock` makes a whole scenario (minutes of mobility, the
 product's 10 s beacon) run against a fake lab in an instant, the same discipline as
-`sdfr.protocol`'s core in `tests/support/simnet.py`.
+`sdfr.protocol`'s core in `sdfr/testing/simnet.py`.
 """
 
 from __future__ import annotations
