@@ -51,11 +51,34 @@ def _service(s: ServiceOutput) -> Service:
     return Service(id=s.id, name=s.name, type=s.type, url=s.url, attributes=s.attributes)
 
 
+#: The keys of a service the bridge reads; others (a field a newer sdfrd adds) are left out
+#: before the record is checked, since the schema's service refuses unknown keys.
+_SERVICE_KEYS = frozenset(LocalService.__struct_fields__)
+
+
+def _known(service: object) -> object:
+    if isinstance(service, dict):
+        return {k: v for k, v in service.items() if k in _SERVICE_KEYS}
+    return service
+
+
+def _known_services(items: object) -> object:
+    """`items` (a robot list) with each service's unknown keys left out."""
+    if not isinstance(items, list):
+        return items
+    return [
+        {**r, "services": [_known(s) for s in r["services"]]}
+        if isinstance(r, dict) and isinstance(r.get("services"), list)
+        else r
+        for r in items
+    ]
+
+
 def robots_from_json(items: object, what: str = "neighbors") -> tuple[Robot, ...]:
     """The daemon's robot list (`sdfr.schema.Neighbor`s), checked; BridgeError naming what
     was wrong otherwise."""
     try:
-        parsed = msgspec.convert(items, list[Neighbor])
+        parsed = msgspec.convert(_known_services(items), list[Neighbor])
     except msgspec.ValidationError as exc:
         raise BridgeError(f"unexpected answer from sdfrd for {what}: {exc}") from None
     return tuple(
@@ -76,7 +99,9 @@ def services_from_json(items: object) -> tuple[Service, ...]:
     """This robot's registrations (`sdfr.schema.LocalService`s) as services (a lease's `ttl`
     and `expires` left out)."""
     try:
-        parsed = msgspec.convert(items, list[LocalService])
+        parsed = msgspec.convert(
+            [_known(s) for s in items] if isinstance(items, list) else items, list[LocalService]
+        )
     except msgspec.ValidationError as exc:
         raise BridgeError(f"unexpected answer from sdfrd for services: {exc}") from None
     return tuple(_service(s) for s in parsed)

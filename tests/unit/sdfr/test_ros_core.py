@@ -215,6 +215,19 @@ def test_a_malformed_answer_of_the_daemon_names_what_was_wrong() -> None:
         robots_from_json([{**good, "reachable": "yes"}])
 
 
+def test_a_field_a_newer_daemon_adds_to_services_does_not_break_the_bridge() -> None:
+    service = {"id": "s1", "name": "map", "type": "nav.map", "url": None, "attributes": {},
+               "added_later": {"x": 1}}  # fmt: skip
+    robot = {"robot_id": "a", "address": "10.1.0.1", "reachable": True, "indicator": None,
+             "rtt_ms": None, "last_seen": 5.0, "services": [service]}  # fmt: skip
+    [seen] = robots_from_json([robot])[0].services
+    assert (seen.id, seen.name, seen.type) == ("s1", "map", "nav.map")
+    [mine] = services_from_json([{**service, "ttl": None, "expires": None}])
+    assert mine.id == "s1"
+    with pytest.raises(BridgeError, match="for neighbors"):  # what it reads is still checked
+        robots_from_json([{**robot, "services": [{**service, "name": 7}]}])
+
+
 def test_health_as_a_diagnosis() -> None:
     ok = diagnosis_of(
         {"status": "ok", "discovery": "up", "state": "ok", "warnings": []}, "r1", None
