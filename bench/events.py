@@ -19,9 +19,10 @@ from pathlib import Path
 from typing import Any
 
 from sdfr.client import Client
+from sdfr.daemon.channel import EVENTS, STATUS_SOCKET
 from sdfr.events import Event, Tracker
 from sdfr.model import PeerRecord, Service
-from sdfr.store import EVENT_LOG_MAX, STATUS_SOCKET, Store
+from sdfr.store import EVENT_LOG_MAX, Store
 
 OUT = Path("runs/bench-events.json")
 
@@ -135,7 +136,7 @@ def latency(tmp: Path, subscribers: int, changes: int = 100) -> dict[str, Any]:
         for k in range(changes, 2 * changes):  # discovery-side changes
             sent[k] = time.perf_counter()
             writer.save_history((), [], [Event("robot.appeared", "r9", {"mark": k})])
-            wake.sendto(b"events\n", str(state / STATUS_SOCKET))
+            wake.sendto(EVENTS, str(state / STATUS_SOCKET))
             time.sleep(0.01)
         for t in threads:
             t.join(30)

@@ -20,7 +20,8 @@ from sdfr.api.httpserve import TCPSite, UnixSite
 from sdfr.api.openapi import openapi_document
 from sdfr.api.replies import MAX_BODY
 from sdfr.api.server import Runner
-from sdfr.api.state import HEARTBEAT_STALE, STATE, ApiState, notify_discovery, pid_alive
+from sdfr.api.state import HEARTBEAT_STALE, STATE, ApiState, pid_alive
+from sdfr.daemon.channel import notify_discovery
 
 __all__ = [
     "HEARTBEAT_STALE",

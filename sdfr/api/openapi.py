@@ -6,8 +6,9 @@ from typing import Any
 
 from sdfr import __version__
 from sdfr.api.events import STREAMS_MAX, STREAMS_PER_CLIENT
-from sdfr.api.handlers import FLAG_VALUES, OWNER_HEADER, OWNER_TOKEN
+from sdfr.api.handlers import FLAG_VALUES, OWNER_TOKEN
 from sdfr.api.models import components
+from sdfr.endpoints import OWNER_HEADER
 from sdfr.events import FAMILIES, KINDS
 
 # -- the OpenAPI document ----------------------------------------------------------------------

@@ -19,8 +19,7 @@ from sdfr import procfs, wire
 from sdfr.api.http import AppKey, Request, Response
 from sdfr.api.replies import Handler, json_bytes
 from sdfr.config import Config, location_max_len
-from sdfr.daemon.channel import EVENTS, STATUS
-from sdfr.daemon.channel import notify_discovery as notify_discovery  # (sdfr.api's too)
+from sdfr.daemon.channel import EVENTS, STATUS, notify_discovery
 from sdfr.model import PeerRecord, Service
 from sdfr.status import DiscoveryStatus
 from sdfr.store import (

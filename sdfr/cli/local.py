@@ -11,7 +11,7 @@ from importlib import resources
 
 from sdfr import netif, wifi
 from sdfr.cli.args import WIFI_CONFIG_OPTIONS
-from sdfr.config import from_args
+from sdfr.config import from_args, option_flags
 from sdfr.errors import ConfigError, SdfrError
 
 
@@ -24,10 +24,7 @@ def wifi_config(args: argparse.Namespace) -> int:
     """`sdfr wifi-config`: plan from sdfrd's configuration; print it; apply unless --dry-run."""
     as_json = getattr(args, "json", False)
     sdfrd_argv: list[str] = [] if args.config is None else ["--config", str(args.config)]
-    for name in WIFI_CONFIG_OPTIONS:
-        value = getattr(args, name, None)
-        if value is not None:
-            sdfrd_argv += ["--" + name.replace("_", "-"), str(value)]
+    sdfrd_argv += option_flags({name: getattr(args, name, None) for name in WIFI_CONFIG_OPTIONS})
     try:
         cfg = from_args(sdfrd_argv)
         cfg = replace(cfg, iface=cfg.iface or netif.default_iface())

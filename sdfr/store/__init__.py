@@ -31,7 +31,6 @@ EVENT_LOG_MAX events; `meta.events_pruned` is the largest id dropped, so a reade
 events after an older id learns that some are gone.
 """
 
-from sdfr.daemon.channel import STATUS_SOCKET as STATUS_SOCKET  # (bench.events's import)
 from sdfr.store.db import BOOT_EPOCH, EVENT_LOG_MAX, Store
 from sdfr.store.files import SCHEMA_VERSION
 from sdfr.store.records import (
@@ -57,7 +56,6 @@ __all__ = [
     "DAEMON",
     "EVENT_LOG_MAX",
     "SCHEMA_VERSION",
-    "STATUS_SOCKET",
     "Add",
     "Caller",
     "Expire",

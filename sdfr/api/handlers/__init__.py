@@ -5,12 +5,11 @@
 from sdfr.api.handlers.fleet import history, neighbors, search
 from sdfr.api.handlers.health import health, self_info
 from sdfr.api.handlers.keys import keys_install, keys_list, keys_mode, keys_remove, keys_use
-from sdfr.api.handlers.request import FLAG_VALUES, OWNER_HEADER, OWNER_TOKEN
+from sdfr.api.handlers.request import FLAG_VALUES, OWNER_TOKEN
 from sdfr.api.handlers.services import get_service, hold, list_services, publish, renew, unpublish
 
 __all__ = [
     "FLAG_VALUES",
-    "OWNER_HEADER",
     "OWNER_TOKEN",
     "get_service",
     "health",

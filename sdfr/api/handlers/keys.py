@@ -10,7 +10,8 @@ from sdfr.api.doors import over_unix_socket
 from sdfr.api.handlers.request import only_params, query_flag
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import RequestError, cannot_write_status, json_response, read_json
-from sdfr.api.state import ApiState, notify_discovery, state_of
+from sdfr.api.state import ApiState, state_of
+from sdfr.daemon.channel import notify_discovery
 from sdfr.errors import ConfigError, ValidationError
 from sdfr.keystore import KeyringFileError, StoredKeyring
 from sdfr.store import write_reason

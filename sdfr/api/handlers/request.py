@@ -8,12 +8,9 @@ from collections.abc import Iterable
 
 from sdfr.api.http import Request
 from sdfr.api.replies import RequestError
+from sdfr.endpoints import OWNER_HEADER
 from sdfr.errors import ValidationError
 from sdfr.store import Caller, hash_token
-
-#: The header a program sends its owner token in.
-OWNER_HEADER = "X-SDFR-Owner"
-
 
 #: What an owner token is: at least 128 bits of URL-safe base64 (secrets.token_urlsafe(16)).
 OWNER_TOKEN = re.compile(r"[A-Za-z0-9_-]{22,128}")

@@ -13,7 +13,8 @@ from sdfr.api.handlers.request import caller, not_yours, owner_token
 from sdfr.api.http import Request, Response, StreamResponse
 from sdfr.api.leases import TTL_MAX, TTL_MIN
 from sdfr.api.replies import RequestError, json_response, read_json
-from sdfr.api.state import ApiState, notify_discovery, state_of
+from sdfr.api.state import ApiState, state_of
+from sdfr.daemon.channel import notify_discovery
 from sdfr.errors import ValidationError
 from sdfr.model import Service
 from sdfr.store import Add, Caller, Lease, NotOwner, Remove, Renew
