@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Generator
-from types import TracebackType
 from typing import Any, TypeVar
 
 from sdfr import calls, need_extra
@@ -78,12 +77,7 @@ class AsyncClient(Api, AsyncTransport["AsyncKeptLease"]):
     async def __aenter__(self) -> AsyncClient:
         return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
     async def _send(self, call: Call[T]) -> T:
