@@ -18,6 +18,8 @@ import threading
 import time
 from typing import Any
 
+from sdfr import calls
+
 
 def merge(per_thread: list[dict[str, list[float]]]) -> tuple[dict[str, list[float]], list[float]]:
     """The load's threads' samples by request kind, and their failures apart."""
@@ -111,24 +113,25 @@ def publisher(
     w: Worker, i: int, args: argparse.Namespace, stop: float, out: dict[str, list[float]]
 ) -> None:
     rng = random.Random(i)
-    body = json.dumps(
-        {
-            "name": f"publisher-{i}",
-            "type": f"bench.kind{i % 7}",
-            "url": f"http://localhost:{9000 + i}/",
-            "attributes": {"index": i, "rate": 10 + i % 5, "frame": f"base_link_{i}"},
-        }
-    ).encode()
+    publish = calls.publish_service(
+        f"publisher-{i}",
+        f"bench.kind{i % 7}",
+        f"http://localhost:{9000 + i}/",
+        {"index": i, "rate": 10 + i % 5, "frame": f"base_link_{i}"},
+    )
+    # Sent without an id: sdfrd chooses one, and each publish is a new registration.
+    body = json.dumps({k: v for k, v in (publish.body or {}).items() if k != "id"}).encode()
     time.sleep(rng.uniform(0, args.publish_delay / args.speedup))
     while time.monotonic() < stop:
-        status, data, dt = w.call("POST", "/services", body)
+        status, data, dt = w.call(publish.method, publish.path, body)
         if status != 201:
             out["errors"].append(status)
             return
         out["publish"].append(dt)
         sid = json.loads(data)["id"]
         time.sleep(rng.uniform(0, args.unpublish_delay / args.speedup))
-        status, _, dt = w.call("DELETE", f"/services/{sid}")
+        unpublish = calls.unpublish(sid)
+        status, _, dt = w.call(unpublish.method, unpublish.path)
         if status != 204:
             out["errors"].append(status)
             return

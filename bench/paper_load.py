@@ -41,7 +41,8 @@ from dataclasses import dataclass, field
 from typing import IO, Any
 
 from bench.load import Worker, merge, summary
-from sdfr.client import new_service_id
+from sdfr import calls
+from sdfr.calls import new_service_id
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,16 +70,16 @@ class Plan:
         )
 
 
-def service_body(robot: str, index: int, sid: str) -> dict[str, object]:
+def publish_call(robot: str, index: int, sid: str) -> calls.Call[calls.PublishedJson]:
     """Publisher `index`'s service on `robot`, under id `sid`: the same every time it
     publishes, apart from the id."""
-    return {
-        "id": sid,
-        "name": f"publisher-{index}",
-        "type": f"bench.kind{index % 7}",
-        "url": f"http://{robot}.local:{9000 + index}/",
-        "attributes": {"index": index, "rate": 10 + index % 5, "frame": f"{robot}/base_link"},
-    }
+    return calls.publish_service(
+        f"publisher-{index}",
+        f"bench.kind{index % 7}",
+        f"http://{robot}.local:{9000 + index}/",
+        {"index": index, "rate": 10 + index % 5, "frame": f"{robot}/base_link"},
+        service_id=sid,
+    )
 
 
 @dataclass
@@ -145,8 +146,10 @@ def publisher(
             return  # churn is over: a service unpublished now stays so
         first, delay = False, plan.publish_delay
         sid = new_service_id()
-        body = json.dumps(service_body(plan.robot, index, sid)).encode()
-        if not timed("publish", "POST", "/services", body, 201, sid):
+        publish = publish_call(plan.robot, index, sid)
+        # The id leads, as in the requests the bench's published figures were measured with.
+        body = json.dumps({"id": sid, **(publish.body or {})}).encode()
+        if not timed("publish", publish.method, publish.path, body, 201, sid):
             return
         with board.lock:
             order.clear()
@@ -156,7 +159,8 @@ def publisher(
                 return
         if stop.is_set():
             return
-        if not timed("unpublish", "DELETE", f"/services/{sid}", None, 204, sid):
+        unpublish = calls.unpublish(sid)
+        if not timed("unpublish", unpublish.method, unpublish.path, None, 204, sid):
             return
 
 
