@@ -41,9 +41,15 @@ fmt: $(STAMP)
 	$(BIN)/ruff check --fix $(LINT_PATHS)
 	$(BIN)/ruff format $(LINT_PATHS)
 
+# A bench's recipe: `$(call run-bench,NAME ARGS)` makes runs/ (where benches write their JSON),
+# then runs `python -m bench.NAME ARGS`.
+define run-bench
+mkdir -p runs
+$(BIN)/python -m bench.$(1)
+endef
+
 bench: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.api_latency | tee runs/bench-api.json
+	$(call run-bench,api_latency | tee runs/bench-api.json)
 	$(MAKE) --no-print-directory bench-events
 	$(MAKE) --no-print-directory bench-auth
 	$(MAKE) --no-print-directory bench-flood
@@ -55,47 +61,40 @@ bench: $(STAMP)
 # published and 20 peers known; idle CPU of 7 robots x 10 services at the 10 s beacon, with
 # python-zeroconf doing the same job in the same lab (~6 min; root). runs/bench-footprint.json.
 bench-footprint: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.footprint --profile > /dev/null
+	$(call run-bench,footprint --profile > /dev/null)
 
 # 10, 50 and 100 robots with real daemons in one lab (scenario scale-100), 2 minutes of stay
 # each: set-up, convergence, CPU and PSS per daemon, bytes per robot on the air, and how they
 # grow with n (~12 min; root). runs/bench-scale.json and docs/scale-growth.png.
 bench-scale: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.scale > /dev/null
+	$(call run-bench,scale > /dev/null)
 
 # What GET /events costs: the event log's append and size, change -> subscriber latency for
 # 1, 16 and 64 streams, the API layer's CPU (~30 s); JSON in runs/bench-events.json.
 bench-events: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.events
+	$(call run-bench,events)
 
 # What authenticated datagrams cost: bytes and CPU per datagram, signed vs unsigned, and a
 # 6-robot fleet's bytes open vs keyed (a few seconds); JSON in runs/bench-auth.json.
 bench-auth: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.auth > /dev/null
+	$(call run-bench,auth > /dev/null)
 
 # A flood of 10,000 fake robots at 5,000 datagrams/s for 60 s against a real daemon of an
 # open fleet: its CPU, memory, /neighbors latency and pings, idle vs flooded (~2 min; root).
 bench-flood: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.flood
+	$(call run-bench,flood)
 
 # SDfR's bytes per robot over 5 minutes at the 10 s beacon, fleets of 2, 4 and 6 at once
 # (~6 min); JSON on stdout and in runs/bench-traffic.json, a table on stderr.
 bench-traffic: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.traffic
+	$(call run-bench,traffic)
 
 # The paper's evaluation under its load (section 6, figures 4-6): static 2/4/6 robots x 30/50/70 %
 # publishers and the dynamic scenario, 5 minutes each, then python-zeroconf side by side and the
 # bytes per robot at 2, 6 and 20 robots (~80 min; ARGS=--quick: ~10 min); root. One run folder
 # runs/bench-paper-<time>/ with the figures (PNG and JSON); the result in runs/bench-paper.json.
 bench-paper: $(STAMP)
-	mkdir -p runs
-	$(BIN)/python -m bench.paper --out runs/bench-paper.json $(ARGS) > /dev/null
+	$(call run-bench,paper --out runs/bench-paper.json $(ARGS) > /dev/null)
 
 netlab: $(STAMP)
 	$(BIN)/python -m netlab.demo
@@ -128,8 +127,7 @@ test-ros: $(STAMP)
 # Latency from ~/publish on one robot to the change on ~/neighbors of another, p50 over 50
 # changes, two netlab robots under ROS 2 (~1 min; root); JSON in runs/bench-ros.json.
 bench-ros: $(STAMP) ros-setup
-	mkdir -p runs
-	$(BIN)/python -m bench.ros_latency
+	$(call run-bench,ros_latency)
 
 clean:
 	find . -path ./$(VENV) -prune -o -type d -name __pycache__ -exec rm -rf {} +
