@@ -39,6 +39,32 @@ class Interfaces:
     time: Callable[[float], Any]  # seconds since the epoch -> the version's time
     level: Callable[[int], Any]  # DiagnosticStatus.level: bytes in ROS 2, int in ROS 1
 
+    @classmethod
+    def of(
+        cls,
+        msg: Any,
+        diagnostic: Any,
+        std: Any,
+        *,
+        time: Callable[[float], Any],
+        level: Callable[[int], Any],
+    ) -> Interfaces:
+        """The classes of the modules sdfr_msgs.msg, diagnostic_msgs.msg and std_msgs.msg,
+        which have the same names in both versions."""
+        return cls(
+            Attribute=msg.Attribute,
+            Service=msg.Service,
+            Robot=msg.Robot,
+            NeighborList=msg.NeighborList,
+            Change=msg.Change,
+            DiagnosticArray=diagnostic.DiagnosticArray,
+            DiagnosticStatus=diagnostic.DiagnosticStatus,
+            KeyValue=diagnostic.KeyValue,
+            Header=std.Header,
+            time=time,
+            level=level,
+        )
+
 
 # -- in --------------------------------------------------------------------------------------
 

@@ -25,11 +25,11 @@ from sdfr.ros.spawn import SpawnError
 NODE_NAME = "sdfr"
 
 try:
+    import diagnostic_msgs.msg as diagnostic_msg
     import rospy
     import sdfr_msgs.msg as sdfr_msg
     import sdfr_msgs.srv as sdfr_srv
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from std_msgs.msg import Header
+    import std_msgs.msg as std_msg
 except ImportError as exc:  # pragma: no cover - depends on the environment
     _MISSING: ImportError | None = exc
 else:
@@ -42,19 +42,7 @@ def _time(t: float) -> Any:
 
 
 def interfaces() -> conv.Interfaces:
-    return conv.Interfaces(
-        Attribute=sdfr_msg.Attribute,
-        Service=sdfr_msg.Service,
-        Robot=sdfr_msg.Robot,
-        NeighborList=sdfr_msg.NeighborList,
-        Change=sdfr_msg.Change,
-        DiagnosticArray=DiagnosticArray,
-        DiagnosticStatus=DiagnosticStatus,
-        KeyValue=KeyValue,
-        Header=Header,
-        time=_time,
-        level=int,
-    )
+    return conv.Interfaces.of(sdfr_msg, diagnostic_msg, std_msg, time=_time, level=int)
 
 
 class Ros1Node(NodeAdapter):
@@ -69,7 +57,9 @@ class Ros1Node(NodeAdapter):
             "~neighbors", sdfr_msg.NeighborList, queue_size=1, latch=True
         )
         self.changes_pub = rospy.Publisher("~changes", sdfr_msg.Change, queue_size=100)
-        self.diag_pub = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=10)
+        self.diag_pub = rospy.Publisher(
+            "/diagnostics", diagnostic_msg.DiagnosticArray, queue_size=10
+        )
         self.bridge = Bridge(params, self)
 
     def open(self) -> None:

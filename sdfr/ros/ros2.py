@@ -30,15 +30,15 @@ NODE_NAME = "sdfr"
 _ROS_OWN = {"use_sim_time", "start_type_description_service"}
 
 try:
+    import diagnostic_msgs.msg as diagnostic_msg
     import rclpy
     import sdfr_msgs.msg as sdfr_msg
     import sdfr_msgs.srv as sdfr_srv
+    import std_msgs.msg as std_msg
     from builtin_interfaces.msg import Time
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.executors import ExternalShutdownException
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from std_msgs.msg import Header
 except ImportError as exc:  # pragma: no cover - depends on the environment
     _MISSING: ImportError | None = exc
 else:
@@ -51,18 +51,8 @@ def _time(t: float) -> Any:
 
 
 def interfaces() -> conv.Interfaces:
-    return conv.Interfaces(
-        Attribute=sdfr_msg.Attribute,
-        Service=sdfr_msg.Service,
-        Robot=sdfr_msg.Robot,
-        NeighborList=sdfr_msg.NeighborList,
-        Change=sdfr_msg.Change,
-        DiagnosticArray=DiagnosticArray,
-        DiagnosticStatus=DiagnosticStatus,
-        KeyValue=KeyValue,
-        Header=Header,
-        time=_time,
-        level=lambda level: bytes([level]),
+    return conv.Interfaces.of(
+        sdfr_msg, diagnostic_msg, std_msg, time=_time, level=lambda level: bytes([level])
     )
 
 
@@ -82,7 +72,7 @@ class Ros2Node(NodeAdapter):
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.neighbors_pub = node.create_publisher(sdfr_msg.NeighborList, "~/neighbors", latched)
         self.changes_pub = node.create_publisher(sdfr_msg.Change, "~/changes", reliable)
-        self.diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.diag_pub = node.create_publisher(diagnostic_msg.DiagnosticArray, "/diagnostics", 10)
         self.bridge = Bridge(params, self)
 
     def open(self) -> None:
