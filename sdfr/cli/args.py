@@ -53,6 +53,13 @@ def _attr(text: str) -> tuple[str, str]:
     return key, value
 
 
+def _attr_option(command: argparse.ArgumentParser, text: str) -> None:
+    """--attr KEY=VALUE, repeatable, of publish and search."""
+    command.add_argument(
+        "--attr", type=_attr, action="append", default=[], metavar="KEY=VALUE", help=text
+    )
+
+
 def _api(text: str) -> str:
     try:
         split_api(text)
@@ -186,14 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("name", help="what people call it, e.g. 'front camera'")
     c.add_argument("type", help="what it is, searched by equality, e.g. camera/rgb")
     c.add_argument("--url", help="where to reach it (default: none)")
-    c.add_argument(
-        "--attr",
-        type=_attr,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="an attribute (repeatable); true/false and numbers are typed (default: none)",
-    )
+    _attr_option(c, "an attribute (repeatable); true/false and numbers are typed (default: none)")
     c.add_argument(
         "--ttl",
         type=_seconds,
@@ -219,14 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
         more=" (all of them, or those matching --type and --attr)",
     )
     c.add_argument("--type", help="the service type (default: any)")
-    c.add_argument(
-        "--attr",
-        type=_attr,
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="an attribute to match (repeatable; numbers by value) (default: none)",
-    )
+    _attr_option(c, "an attribute to match (repeatable; numbers by value) (default: none)")
     c.add_argument(
         "--wait",
         type=_seconds,
