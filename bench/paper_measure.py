@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from netlab.analysis import Totals
+
 #: The paper's figures (section 6): its numbers, as the bench compares with them.
 PAPER = {
     "publish_ms": (95.0, 130.0),
@@ -37,32 +39,11 @@ _PCAP_HEADER = struct.Struct("<IHHiIII")
 
 
 @dataclass(slots=True)
-class Flow:
-    """Datagrams and their bytes one way: UDP payload and whole Ethernet frame."""
-
-    datagrams: int = 0
-    payload: int = 0
-    frame: int = 0
-
-    def add(self, payload: int, frame: int) -> None:
-        self.datagrams += 1
-        self.payload += payload
-        self.frame += frame
-
-    def to_json(self) -> dict[str, int]:
-        return {
-            "datagrams": self.datagrams,
-            "payload_bytes": self.payload,
-            "frame_bytes": self.frame,
-        }
-
-
-@dataclass(slots=True)
 class PortTraffic:
     """One robot's traffic on one UDP port: what it sent (tx) and what reached it (rx)."""
 
-    tx: Flow = field(default_factory=Flow)
-    rx: Flow = field(default_factory=Flow)
+    tx: Totals = field(default_factory=Totals)
+    rx: Totals = field(default_factory=Totals)
 
 
 def _frames(path: Path) -> Iterator[tuple[float, bytes, int]]:
@@ -113,7 +94,7 @@ def udp_traffic(
         if port is None:
             continue
         flow = out[port].tx if frame[6:12] == mac else out[port].rx
-        flow.add(ulen - 8, length)
+        flow.count(ulen - 8, length)
     return out
 
 

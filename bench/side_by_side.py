@@ -447,7 +447,9 @@ def churn_traffic(
         for system, port in (("sdfr", SDFR_PORT), ("zeroconf", MDNS_PORT)):
             flows = t[port]
             per[system][r] = {
-                f"{d}_{s}": round(per_5_min(getattr(getattr(flows, d), s), seconds) / 1000, 2)
+                f"{d}_{s}": round(
+                    per_5_min(getattr(getattr(flows, d), f"{s}_bytes"), seconds) / 1000, 2
+                )
                 for d in ("tx", "rx")
                 for s in ("payload", "frame")
             }

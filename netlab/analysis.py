@@ -59,9 +59,13 @@ class Totals:
     frame_bytes: int = 0
 
     def add(self, rec: Record) -> None:
+        self.count(rec.payload_len, rec.frame_len)
+
+    def count(self, payload: int, frame: int) -> None:
+        """One datagram more: `payload` bytes of UDP payload in a `frame`-byte frame."""
         self.datagrams += 1
-        self.payload_bytes += rec.payload_len
-        self.frame_bytes += rec.frame_len
+        self.payload_bytes += payload
+        self.frame_bytes += frame
 
     def to_json(self) -> dict[str, int]:
         return {

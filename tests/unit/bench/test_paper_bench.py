@@ -59,9 +59,11 @@ def test_udp_traffic_counts_what_a_robot_sent_and_received_per_port(tmp_path: Pa
         ],
     )
     got = udp_traffic(p, MINE, [1900, 5353], (9.0, 20.0))
-    assert (got[1900].tx.datagrams, got[1900].tx.payload, got[1900].tx.frame) == (2, 110, 194)
-    assert (got[1900].rx.datagrams, got[1900].rx.payload) == (1, 50)
-    assert (got[5353].tx.datagrams, got[5353].rx.payload, got[5353].rx.frame) == (0, 70, 112)
+    tx, rx = got[1900].tx, got[1900].rx
+    assert (tx.datagrams, tx.payload_bytes, tx.frame_bytes) == (2, 110, 194)
+    assert (rx.datagrams, rx.payload_bytes) == (1, 50)
+    tx, rx = got[5353].tx, got[5353].rx
+    assert (tx.datagrams, rx.payload_bytes, rx.frame_bytes) == (0, 70, 112)
 
 
 def test_mdns_messages_tells_queries_from_responses(tmp_path: Path) -> None:
