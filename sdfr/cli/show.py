@@ -62,23 +62,7 @@ def attrs_text(attributes: object) -> str:
 
 
 def show_neighbors(answer: dict[str, Any]) -> str:
-    robots = answer["neighbors"]
-    if not robots:
-        return "no reachable robots"
-    return table(
-        ["ROBOT", "ADDRESS", "REACHABLE", "INDICATOR", "RTT", "SERVICES"],
-        [
-            (
-                r["robot_id"],
-                r["address"] or "-",
-                r["reachable"],
-                _indicator(r.get("indicator")),
-                _rtt(r.get("rtt_ms")),
-                names(r["services"]),
-            )
-            for r in robots
-        ],
-    )
+    return _robots(answer["neighbors"], "no reachable robots")
 
 
 def show_services(answer: dict[str, Any]) -> str:
@@ -102,25 +86,24 @@ def show_services(answer: dict[str, Any]) -> str:
 
 
 def show_history(answer: dict[str, Any]) -> str:
-    robots = answer["robots"]
+    return _robots(answer["robots"], "no robot seen yet", time.time())
+
+
+def _robots(robots: list[dict[str, Any]], empty: str, now: float | None = None) -> str:
+    """The neighbours' table; given `now`, the history's (with a LAST SEEN column)."""
     if not robots:
-        return "no robot seen yet"
-    now = time.time()
-    return table(
-        ["ROBOT", "ADDRESS", "REACHABLE", "LAST SEEN", "INDICATOR", "RTT", "SERVICES"],
-        [
-            (
-                r["robot_id"],
-                r["address"] or "-",
-                r["reachable"],
-                _ago(r.get("last_seen"), now),
-                _indicator(r.get("indicator")),
-                _rtt(r.get("rtt_ms")),
-                names(r["services"]),
-            )
-            for r in robots
-        ],
-    )
+        return empty
+    headers = ["ROBOT", "ADDRESS", "REACHABLE", "INDICATOR", "RTT", "SERVICES"]
+    if now is not None:
+        headers.insert(3, "LAST SEEN")
+    rows = []
+    for r in robots:
+        row = [r["robot_id"], r["address"] or "-", r["reachable"], _indicator(r.get("indicator"))]
+        row += [_rtt(r.get("rtt_ms")), names(r["services"])]
+        if now is not None:
+            row.insert(3, _ago(r.get("last_seen"), now))
+        rows.append(row)
+    return table(headers, rows)
 
 
 def show_self(answer: dict[str, Any]) -> str:
