@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from sdfr.ros import messages as conv
-from sdfr.ros.core import Bridge, Change, Diagnosis
+from sdfr.ros.core import Bridge, Change, Diagnosis, ServiceRequest
 from sdfr.ros.snapshot import BridgeError, Snapshot
 
 
@@ -55,20 +55,22 @@ class NodeAdapter:
     # -- requests ------------------------------------------------------------------------------
 
     def on_publish(self, msg: Any) -> None:
-        try:
-            sid = self.bridge.publish(conv.request_from_msg(msg))
-        except BridgeError as exc:
-            self.error(f"{self.private}publish: {exc}")
-        else:
+        sid = self._request(self.bridge.publish, "publish", msg)
+        if sid is not None:
             self.info(f"published {msg.name!r} as {sid}")
 
     def on_unpublish(self, msg: Any) -> None:
-        try:
-            sid = self.bridge.unpublish(conv.request_from_msg(msg))
-        except BridgeError as exc:
-            self.error(f"{self.private}unpublish: {exc}")
-        else:
+        sid = self._request(self.bridge.unpublish, "unpublish", msg)
+        if sid is not None:
             self.info(f"unpublished {sid}")
+
+    def _request(self, call: Callable[[ServiceRequest], str], topic: str, msg: Any) -> str | None:
+        """The service id `call` answers for `msg`; None, logged, if the bridge refused it."""
+        try:
+            return call(conv.request_from_msg(msg))
+        except BridgeError as exc:
+            self.error(f"{self.private}{topic}: {exc}")
+            return None
 
     def search(self, request: Any, response: Any) -> Any:
         """Fill the version's Search response for `request`."""
