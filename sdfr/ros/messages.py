@@ -46,11 +46,12 @@ class Interfaces:
         diagnostic: Any,
         std: Any,
         *,
-        time: Callable[[float], Any],
+        stamp: Callable[[int, int], Any],
         level: Callable[[int], Any],
     ) -> Interfaces:
         """The classes of the modules sdfr_msgs.msg, diagnostic_msgs.msg and std_msgs.msg,
-        which have the same names in both versions."""
+        which have the same names in both versions; `stamp` makes the version's time of
+        (seconds, nanoseconds)."""
         return cls(
             Attribute=msg.Attribute,
             Service=msg.Service,
@@ -61,7 +62,7 @@ class Interfaces:
             DiagnosticStatus=diagnostic.DiagnosticStatus,
             KeyValue=diagnostic.KeyValue,
             Header=std.Header,
-            time=time,
+            time=lambda t: stamp(*split_time(t)),
             level=level,
         )
 

@@ -36,13 +36,8 @@ else:
     _MISSING = None
 
 
-def _time(t: float) -> Any:
-    sec, nsec = conv.split_time(t)
-    return rospy.Time(sec, nsec)
-
-
 def interfaces() -> conv.Interfaces:
-    return conv.Interfaces.of(sdfr_msg, diagnostic_msg, std_msg, time=_time, level=int)
+    return conv.Interfaces.of(sdfr_msg, diagnostic_msg, std_msg, stamp=rospy.Time, level=int)
 
 
 class Ros1Node(NodeAdapter):

@@ -45,14 +45,13 @@ else:
     _MISSING = None
 
 
-def _time(t: float) -> Any:
-    sec, nanosec = conv.split_time(t)
+def _stamp(sec: int, nanosec: int) -> Any:
     return Time(sec=sec, nanosec=nanosec)
 
 
 def interfaces() -> conv.Interfaces:
     return conv.Interfaces.of(
-        sdfr_msg, diagnostic_msg, std_msg, time=_time, level=lambda level: bytes([level])
+        sdfr_msg, diagnostic_msg, std_msg, stamp=_stamp, level=lambda level: bytes([level])
     )
 
 
