@@ -8,6 +8,7 @@ logger; the rest is here, once.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -94,3 +95,14 @@ class NodeAdapter:
         response.services = [conv.service_msg(self.m, s) for s in listing.services]
         response.robots = conv.robot_msgs(self.m, listing.robots)
         return response
+
+
+def not_importable(version: int, exc: ImportError) -> int:
+    """Say that ROS `version` cannot be imported here, and which interpreter can; exit status 2."""
+    print(
+        f"sdfr-ros{version}: ROS {version} is not importable here ({exc}); run it with the "
+        f"interpreter of the ROS {version} environment "
+        f"(make ros{version}-setup: .venv/ros{version}/bin/python)",
+        file=sys.stderr,
+    )
+    return 2

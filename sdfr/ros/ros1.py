@@ -17,7 +17,7 @@ from typing import Any
 
 from sdfr.errors import ConfigError
 from sdfr.ros import messages as conv
-from sdfr.ros.adapter import NodeAdapter
+from sdfr.ros.adapter import NodeAdapter, not_importable
 from sdfr.ros.core import Bridge
 from sdfr.ros.params import NodeParams
 from sdfr.ros.spawn import SpawnError
@@ -25,11 +25,11 @@ from sdfr.ros.spawn import SpawnError
 NODE_NAME = "sdfr"
 
 try:
-    import diagnostic_msgs.msg as diagnostic_msg
     import rospy
     import sdfr_msgs.msg as sdfr_msg
     import sdfr_msgs.srv as sdfr_srv
-    import std_msgs.msg as std_msg
+    from diagnostic_msgs import msg as diagnostic_msg
+    from std_msgs import msg as std_msg
 except ImportError as exc:  # pragma: no cover - depends on the environment
     _MISSING: ImportError | None = exc
 else:
@@ -82,12 +82,7 @@ def read_params() -> NodeParams:
 
 def main(argv: Sequence[str] | None = None) -> int:
     if _MISSING is not None:
-        print(
-            f"sdfr-ros1: ROS 1 is not importable here ({_MISSING}); run it with the "
-            "interpreter of the ROS 1 environment (make ros1-setup: .venv/ros1/bin/python)",
-            file=sys.stderr,
-        )
-        return 2
+        return not_importable(1, _MISSING)
     rospy.init_node(NODE_NAME, argv=list(argv) if argv is not None else sys.argv)
     # rospy takes over the root logger's handlers; the core's records go to rosout with it.
     logging.getLogger("sdfr.ros").setLevel(logging.INFO)

@@ -20,7 +20,7 @@ from typing import Any
 
 from sdfr.errors import ConfigError
 from sdfr.ros import messages as conv
-from sdfr.ros.adapter import NodeAdapter
+from sdfr.ros.adapter import NodeAdapter, not_importable
 from sdfr.ros.core import Bridge
 from sdfr.ros.params import DESCRIPTIONS, NodeParams
 from sdfr.ros.spawn import SpawnError
@@ -30,15 +30,15 @@ NODE_NAME = "sdfr"
 _ROS_OWN = {"use_sim_time", "start_type_description_service"}
 
 try:
-    import diagnostic_msgs.msg as diagnostic_msg
     import rclpy
     import sdfr_msgs.msg as sdfr_msg
     import sdfr_msgs.srv as sdfr_srv
-    import std_msgs.msg as std_msg
     from builtin_interfaces.msg import Time
+    from diagnostic_msgs import msg as diagnostic_msg
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.executors import ExternalShutdownException
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs import msg as std_msg
 except ImportError as exc:  # pragma: no cover - depends on the environment
     _MISSING: ImportError | None = exc
 else:
@@ -101,12 +101,7 @@ def read_params(node: Any) -> NodeParams:
 
 def main(argv: Sequence[str] | None = None) -> int:
     if _MISSING is not None:
-        print(
-            f"sdfr-ros2: ROS 2 is not importable here ({_MISSING}); run it with the "
-            "interpreter of the ROS 2 environment (make ros2-setup: .venv/ros2/bin/python)",
-            file=sys.stderr,
-        )
-        return 2
+        return not_importable(2, _MISSING)
     logging.basicConfig(level=logging.INFO, format="[sdfr.ros] %(levelname)s %(message)s")
     rclpy.init(args=list(argv) if argv is not None else None)
     node = rclpy.create_node(
