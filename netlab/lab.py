@@ -30,6 +30,7 @@ import contextlib
 import dataclasses
 import os
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterable, Mapping
@@ -123,7 +124,16 @@ class Lab(LabProcesses, LabMedium):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        self.down()
+        # A block that failed keeps the lab's folder (its robots' daemon logs and state), as
+        # `netlab down` does, and its error says where; one that ended well leaves nothing.
+        failed = isinstance(exc, Exception)
+        kept = self.down(keep_workdir=failed).kept
+        if isinstance(exc, Exception) and kept:
+            note = f"lab {self.name}: its folder (daemon logs, state) is kept in {kept}"
+            if hasattr(exc, "add_note"):  # (Python 3.11)
+                exc.add_note(note)
+            else:
+                print(f"netlab: {note}", file=sys.stderr)
 
     def __repr__(self) -> str:
         return f"<Lab {self.name} {self._state}, {len(self._robots)} robots>"
@@ -183,15 +193,16 @@ class Lab(LabProcesses, LabMedium):
             raise
         return self
 
-    def down(self) -> SweepResult:
-        """Stop every process and remove every object of the lab; idempotent."""
+    def down(self, *, keep_workdir: bool = False) -> SweepResult:
+        """Stop every process and remove every object of the lab (its folder too, unless
+        `keep_workdir`); idempotent."""
         if self._state != "up":
             return SweepResult()
         self._state = "down"
         self._close_clients()
         self.medium.close()
         try:
-            result = cleanup.sweep(self.name, self._record)
+            result = cleanup.sweep(self.name, self._record, keep_workdir=keep_workdir)
         finally:
             for proc in [*self._daemons.values(), *self._procs]:
                 with contextlib.suppress(subprocess.TimeoutExpired):

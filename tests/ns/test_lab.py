@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import selectors
+import shutil
 import signal
 import subprocess
 import sys
@@ -204,6 +205,30 @@ def test_lab_objects_carry_its_name_and_a_second_lab_of_that_name_is_refused(
     assert manifest.load(lab.name) is not None  # the refused lab did not release the name
     out = lab.exec("r1", ["ip", "-o", "link", "show", "eth0"]).stdout
     assert naming.mac_for(0, 0) in out
+
+
+def test_a_with_block_that_fails_keeps_the_lab_folder_and_says_where() -> None:
+    """`with Lab(...)` in a user's test: when the block raises, the lab goes down but its folder
+    (daemon logs, state) stays, and the error names it; a block that ends well leaves nothing."""
+    with pytest.raises(RuntimeError, match="on purpose") as info, Lab(unique_lab_name()) as lab:
+        lab.add_robot("r1")
+        log = lab.robot("r1").log
+        log.parent.mkdir(parents=True, exist_ok=True)  # (made when its sdfrd starts)
+        log.write_text("what the daemon said\n")
+        raise RuntimeError("on purpose")
+    try:
+        assert not kernel.list_ns(naming.prefix(lab.name))  # the lab itself is gone
+        assert log.read_text() == "what the daemon said\n"
+        notes = "\n".join(getattr(info.value, "__notes__", []))
+        if sys.version_info >= (3, 11):
+            assert (
+                f"lab {lab.name}: its folder (daemon logs, state) is kept in {lab.workdir}" in notes
+            )
+    finally:
+        shutil.rmtree(lab.workdir, ignore_errors=True)
+    with Lab(unique_lab_name()) as fine:
+        fine.add_robot("r1")
+    assert not fine.workdir.exists()
 
 
 def test_a_robot_that_fails_half_way_leaves_nothing_behind(
