@@ -306,9 +306,9 @@ def traffic(
             "tx": t.tx.to_json(),
             "rx": t.rx.to_json(),
             "per_5_min_kB": {
-                f"{d}_{s}": round(per_5_min(getattr(getattr(t, d), s), seconds) / 1000, 2)
-                for d in ("tx", "rx")
-                for s in ("payload", "frame")
+                f"{d}_{s}": round(per_5_min(n, seconds) / 1000, 2)
+                for d, flow in (("tx", t.tx), ("rx", t.rx))
+                for s, n in (("payload", flow.payload_bytes), ("frame", flow.frame_bytes))
             },
         }
     out: dict[str, Any] = {

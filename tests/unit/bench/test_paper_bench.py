@@ -195,3 +195,26 @@ def test_the_docs_tables_say_what_each_run_measured_and_what_is_missing() -> Non
     assert gap.count("—") == 14 and "None" not in gap
     assert any(line.startswith("| the paper") and "220-320 | 540-850" in line for line in lines)
     assert "| 20 | — | — | — | — |" in lines
+
+
+def test_traffic_scales_each_robots_bytes_to_five_minutes(tmp_path: Path) -> None:
+    """bench.paper's traffic table from a robot's pcap: its per-robot kB per 5 minutes, both
+    ways and both sizes (what figure 6 is drawn from)."""
+    from bench.paper import traffic
+
+    pcap(
+        tmp_path / "r1.pcap",
+        [
+            (10.0, frame(MINE, 1900, 1900, b"x" * 100)),
+            (11.0, frame(OTHER, 1900, 1900, b"y" * 50)),
+            (12.0, frame(MINE, 40000, 1900, b"w" * 10)),
+        ],
+    )
+    got = traffic(tmp_path, ["r1"], {"r1": MINE}, (0.0, 300.0))
+    assert got["per_robot"]["r1"]["per_5_min_kB"] == {
+        "tx_payload": 0.11,
+        "tx_frame": 0.19,
+        "rx_payload": 0.05,
+        "rx_frame": 0.09,
+    }
+    assert got["per_5_min_kB"]["tx_payload"]["mean"] == pytest.approx(0.11, abs=0.01)
