@@ -374,11 +374,13 @@ class ApiState:
         counters changed. If the last one came more than COUNTERS_FRESH ago, ask for one now
         (the channel's STATUS) and wait for it, up to STATUS_WAIT, or LIVENESS_WAIT if the
         last one is too old to say "up". A discovery layer that does not answer leaves
-        the last one (and /health says why); one that is not there is not waited for."""
-        if time.monotonic() - self.live_at < COUNTERS_FRESH:
-            return
+        the last one (and /health says why); one that is not there is not waited for. A
+        layer whose last status says it is starting is always asked: it may have started
+        since, and a status saying so may be on its way."""
         self._decode_live()
         live = self.live_status
+        if time.monotonic() - self.live_at < COUNTERS_FRESH and not (live and live.starting):
+            return
         up = live is not None and time.time() - live.heartbeat < HEARTBEAT_STALE
         came = self.live_came = asyncio.Event()
         try:

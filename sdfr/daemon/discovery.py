@@ -145,15 +145,20 @@ class DiscoveryLayer:
             if self._stopping.is_set():
                 self.auto.close()
                 return
-        self._check_address()
-        await self._serve_description(first=True)  # a failure here leaves no reader behind
         self.loop.add_reader(self.sock.fileno(), self._on_readable)
         self.loop.add_reader(self.control.fileno(), self._on_control)
+        try:
+            self._check_address()
+            await self._serve_description(first=True)
+        except BaseException:  # a start that fails leaves no reader behind
+            self.loop.remove_reader(self.sock.fileno())
+            self.loop.remove_reader(self.control.fileno())
+            raise
         self.core.start(time.monotonic())
         self._pump()
         self._starting = False
-        self.host.beat()  # serving: the supervisor may tell systemd READY=1 now
         self._write_status()
+        self.host.beat()  # serving, and the API layer told first: systemd may hear READY=1
         log.info(
             "discovery up: robot %s fleet %d on %s (%s), boot %d; %d robots known from before",
             self.cfg.robot_id,
