@@ -33,7 +33,7 @@ from typing import Any
 
 from netlab import procstat
 from netlab.lab import Lab
-from sdfr import procfs
+from sdfr.host import procfs
 
 PAPER = {
     "publish_ms": [95, 130],

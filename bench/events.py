@@ -20,8 +20,8 @@ from typing import Any
 
 from sdfr.client import Client
 from sdfr.daemon.channel import EVENTS, STATUS_SOCKET
-from sdfr.events import Event, Tracker
-from sdfr.model import PeerRecord, Service
+from sdfr.records.events import Event, Tracker
+from sdfr.records.model import PeerRecord, Service
 from sdfr.store import EVENT_LOG_MAX, Store
 
 OUT = Path("runs/bench-events.json")

@@ -42,7 +42,7 @@ from typing import Any
 from bench import compile_sdfr, err
 from netlab import procstat
 from netlab.lab import Lab
-from sdfr.config import LAYER_MODES, Config
+from sdfr.config.load import LAYER_MODES, Config
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The issue's targets (16 MiB PSS for a daemon's tree, 0.05 % of a core idle per robot).

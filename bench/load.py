@@ -18,7 +18,7 @@ import threading
 import time
 from typing import Any
 
-from sdfr import calls
+from sdfr.client import calls
 
 
 def merge(per_thread: list[dict[str, list[float]]]) -> tuple[dict[str, list[float]], list[float]]:

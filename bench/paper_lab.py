@@ -18,7 +18,7 @@ from bench import err
 from bench.paper_measure import Reading, usage
 from netlab import capture, naming, procstat
 from netlab.lab import Lab
-from sdfr import procfs
+from sdfr.host import procfs
 
 ROOT = Path(__file__).resolve().parent.parent
 SDFR_PORT = 1900

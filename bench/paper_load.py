@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 from typing import IO, Any
 
 from bench.load import Worker, merge, summary
-from sdfr import calls
-from sdfr.calls import new_service_id
+from sdfr.client import calls
+from sdfr.client.calls import new_service_id
 
 
 @dataclass(frozen=True, slots=True)

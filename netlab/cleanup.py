@@ -34,7 +34,7 @@ from pathlib import Path
 from netlab import docker, hostlimits, kernel, manifest, naming
 from netlab.errors import KernelError
 from netlab.manifest import Manifest, ProcRecord
-from sdfr import procfs
+from sdfr.host import procfs
 
 TERM_GRACE = 5.0
 KILL_WAIT = 5.0

@@ -16,7 +16,7 @@ from netlab.errors import DaemonError, LabStateError, NetlabError, kernel_errors
 from netlab.manifest import Manifest, ProcRecord
 from netlab.robots import Daemon, NamespaceKind, Robot, RobotKind, RobotRef
 from sdfr.client import Client
-from sdfr.config import options_config
+from sdfr.config.load import options_config
 from sdfr.errors import ApiError, ConfigError
 
 START_TIMEOUT = 20.0

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sdfr import procfs
+from sdfr.host import procfs
 
 #: A forked layer's /proc/PID/comm -> its name.
 LAYER_COMMS = {comm: layer for layer, comm in procfs.LAYER_COMM.items()}

@@ -39,8 +39,8 @@ from typing import Any, ClassVar, Protocol
 
 from netlab import docker, kernel
 from netlab.errors import kernel_errors
-from sdfr import procfs
-from sdfr.config import option_flags
+from sdfr.config.load import option_flags
+from sdfr.host import procfs
 
 RUNTIMES = ("namespace", "docker")
 #: Where a container robot's state dir is mounted (the image's volume).

@@ -20,7 +20,8 @@ from scapy.fields import Field
 from scapy.layers.inet import UDP
 from scapy.packet import Packet, bind_layers
 
-from sdfr import auth, wire
+from sdfr import wire
+from sdfr.protocol import auth
 
 __all__ = ["MSG_TYPES", "PORT", "SDfR", "describe"]
 

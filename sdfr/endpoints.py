@@ -1,5 +1,5 @@
 """What a client needs to find and address sdfrd, without the daemon's code: the API's
-default address and the header that carries a client's owner token. `sdfr.config` takes its
+default address and the header that carries a client's owner token. `sdfr.config.load` takes its
 default from here, so that importing a client loads neither the wire codec nor the protocol."""
 
 from __future__ import annotations

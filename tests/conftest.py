@@ -24,7 +24,7 @@ import pytest
 from pyroute2 import netns
 
 from netlab import manifest, naming
-from sdfr import procfs
+from sdfr.host import procfs
 
 pytest_plugins = ["tests.support.fleets", "tests.support.fakelab"]
 

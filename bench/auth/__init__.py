@@ -6,7 +6,8 @@ Four measures, each signed and unsigned (open and keyed) side by side in the sam
    one-service delta, a full Update part, Byebye), encoded as the daemon encodes them, then
    sealed with a counter of the size a robot reaches in a day (6 digits), for the fleet or for
    one robot as the daemon seals it;
-2. CPU: microseconds per datagram to seal and to check a seal (sdfr.auth), and for the whole
+2. CPU: microseconds per datagram to seal and to check a seal (sdfr.protocol.auth), and for the
+   whole
    receive path of the protocol core (seal check, decode, freshness, bookkeeping) fed a
    stream of beacons and pings of a peer it has proven (in a two-robot simulator run);
    medians of repeated timed loops;

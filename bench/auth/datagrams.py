@@ -10,9 +10,10 @@ from collections.abc import Callable
 from functools import partial
 
 from bench.auth.fixtures import COUNTER, KEY, SEQ, check, seal, services
-from sdfr import auth, wire
-from sdfr.auth import Keyring, Sealed
-from sdfr.model import service_digest
+from sdfr import wire
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring, Sealed
+from sdfr.records.model import service_digest
 from sdfr.testing.simnet import SimNet
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Response, Update
 

@@ -12,8 +12,8 @@ from functools import partial
 from typing import Any
 
 from bench.auth.fixtures import STARTUP_S, rings, services
-from sdfr.auth import Keyring
-from sdfr.model import Service
+from sdfr.protocol.auth import Keyring
+from sdfr.records.model import Service
 from sdfr.testing.simnet import SimNet, kind_of
 
 #: What a datagram costs below its UDP payload on an Ethernet link (Ethernet II, IPv4, UDP).

@@ -7,9 +7,10 @@ import inspect
 from collections.abc import Iterator
 from pathlib import Path
 
-from sdfr import auth, wire
-from sdfr.auth import Keyring, Sealed
-from sdfr.model import Service
+from sdfr import wire
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring, Sealed
+from sdfr.records.model import Service
 from sdfr.wire import Reject
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -36,7 +36,7 @@ from netlab.scenario.spec import (
 )
 from netlab.scenario.steps import STEPS, Check, Start, Step
 from sdfr._compat import tomllib  # (tomllib is 3.11+; SDfR runs on 3.10 too)
-from sdfr.config import options_config
+from sdfr.config.load import options_config
 from sdfr.errors import ConfigError
 from sdfr.hints import did_you_mean
 

@@ -256,7 +256,7 @@ class Unpublish(Step):
 
 def twin_mac(mac: str, k: int) -> str:
     """A different MAC with the same last two octets: the same first derived address
-    (`sdfr.addressing.candidates`), yet ARP can tell the two robots apart."""
+    (`sdfr.protocol.addressing.candidates`), yet ARP can tell the two robots apart."""
     octets = mac.split(":")
     octets[1] = f"{(int(octets[1], 16) + k) % 256:02x}"
     return ":".join(octets)

@@ -33,7 +33,7 @@ from sdfr.api.openapi import openapi_document
 from sdfr.api.replies import MAX_BODY, Handler, json_bytes, json_response
 from sdfr.api.server import errors_as_json
 from sdfr.api.state import STATE, ApiState, StoreView, Writer, measure
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.daemon.channel import notify_discovery
 from sdfr.store import Store
 

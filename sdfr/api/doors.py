@@ -14,7 +14,7 @@ from pathlib import Path
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import Handler, RequestError
 from sdfr.api.state import state_of
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.errors import ConfigError
 
 #: Methods whose body, when there is one, must be JSON.

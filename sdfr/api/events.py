@@ -23,7 +23,7 @@ from sdfr.api.http import Request, Response, StreamResponse
 from sdfr.api.replies import RequestError, json_response
 from sdfr.api.state import state_of
 from sdfr.errors import ValidationError
-from sdfr.events import kind_filter
+from sdfr.records.events import kind_filter
 from sdfr.store import Store, StoredEvent
 
 #: Event streams open at once; more are refused (503) so that the API keeps its descriptors.

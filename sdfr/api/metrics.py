@@ -7,10 +7,11 @@ import platform
 from collections.abc import Callable
 from pathlib import Path
 
-from sdfr import DIST_NAME, __version__, procfs, wire
+from sdfr import DIST_NAME, __version__, wire
 from sdfr.api.http import Request, Response
 from sdfr.api.state import LATENCY_BUCKETS, ApiState, state_of
-from sdfr.status import DiscoveryStatus
+from sdfr.host import procfs
+from sdfr.records.status import DiscoveryStatus
 
 #: The Prometheus text format's content type.
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"

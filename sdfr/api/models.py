@@ -1,4 +1,4 @@
-"""The OpenAPI view of the API's records (`sdfr.schema`): which records the document's
+"""The OpenAPI view of the API's records (`sdfr.records.schema`): which records the document's
 schemas are generated from, under which component names. schemathesis checks in `make test`
 that every answer the handlers build keeps to them."""
 
@@ -9,8 +9,8 @@ from typing import Any
 
 import msgspec
 
-from sdfr.model import ServiceInput, ServiceOutput
-from sdfr.schema import (
+from sdfr.records.model import ServiceInput, ServiceOutput
+from sdfr.records.schema import (
     ChangeEvent,
     Error,
     Events,

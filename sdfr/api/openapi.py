@@ -9,7 +9,7 @@ from sdfr.api.events import STREAMS_MAX, STREAMS_PER_CLIENT
 from sdfr.api.handlers import FLAG_VALUES, OWNER_TOKEN
 from sdfr.api.models import components
 from sdfr.endpoints import OWNER_HEADER
-from sdfr.events import FAMILIES, KINDS
+from sdfr.records.events import FAMILIES, KINDS
 
 # -- the OpenAPI document ----------------------------------------------------------------------
 

@@ -12,8 +12,8 @@ from sdfr.api.http import App, Request, Response, RouteError
 from sdfr.api.httpparse import HttpError
 from sdfr.api.replies import Handler, RequestError, cannot_write_status, error_response
 from sdfr.api.state import state_of
+from sdfr.config.keystore import KeyringError
 from sdfr.errors import ValidationError
-from sdfr.keystore import KeyringError
 from sdfr.store import (
     StateWriteError,
 )

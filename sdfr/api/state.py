@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sdfr import procfs, wire
+from sdfr import wire
 from sdfr.api.http import AppKey, Request, Response
 from sdfr.api.replies import Handler, json_bytes
-from sdfr.config import Config, location_max_len
+from sdfr.config.load import Config, location_max_len
 from sdfr.daemon.channel import EVENTS, STATUS, notify_discovery
-from sdfr.model import PeerRecord, Service
-from sdfr.status import DiscoveryStatus
+from sdfr.host import procfs
+from sdfr.records.model import PeerRecord, Service
+from sdfr.records.status import DiscoveryStatus
 from sdfr.store import (
     Lease,
     Op,

@@ -13,12 +13,12 @@ import json
 import os
 import sys
 
-from sdfr.calls import OWNER_HEADER
 from sdfr.cli import commands, keys
 from sdfr.cli.args import EXAMPLES, Usage, build_parser, endpoint, typed_value, usage_error
 from sdfr.cli.local import example_text, wifi_config
 from sdfr.cli.show import describe_change, table
 from sdfr.client import Client, owner_token_path, user_owner_token
+from sdfr.client.calls import OWNER_HEADER
 from sdfr.errors import ApiError
 
 __all__ = ["EXAMPLES", "build_parser", "describe_change", "example_text", "main", "table"]

@@ -12,11 +12,11 @@ from typing import Any
 
 from sdfr import version_text
 from sdfr.argparsing import HintingParser as Parser
-from sdfr.auth import MODES
 from sdfr.client import split_api
-from sdfr.config import DEFAULT_API, default_state_dir, flag, option_help
-from sdfr.events import FAMILIES, KINDS, kind_filter
-from sdfr.model import AttrValue, attr_text
+from sdfr.config.load import DEFAULT_API, default_state_dir, flag, option_help
+from sdfr.protocol.auth import MODES
+from sdfr.records.events import FAMILIES, KINDS, kind_filter
+from sdfr.records.model import AttrValue, attr_text
 
 #: Longest --timeout (seconds): longer, and a dead daemon looks like a hung command.
 TIMEOUT_MAX = 3600.0

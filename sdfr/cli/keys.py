@@ -10,10 +10,10 @@ import sys
 import time
 from typing import Any
 
-from sdfr import keystore
 from sdfr.cli.args import Usage, endpoint, usage_error
 from sdfr.cli.show import table
 from sdfr.client import Client
+from sdfr.config import keystore
 from sdfr.errors import ApiError, ConfigError
 
 _CHECK_SOCKET = "is it running, and is --state-dir (or --socket) right?"

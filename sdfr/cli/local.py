@@ -9,10 +9,10 @@ import sys
 from dataclasses import replace
 from importlib import resources
 
-from sdfr import netif, wifi
 from sdfr.cli.args import WIFI_CONFIG_OPTIONS
-from sdfr.config import from_args, option_flags
+from sdfr.config.load import from_args, option_flags
 from sdfr.errors import ConfigError, SdfrError
+from sdfr.host import netif, wifi
 
 
 def example_text(name: str) -> str:

@@ -8,7 +8,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from sdfr.client import Change
-from sdfr.model import attr_text
+from sdfr.records.model import attr_text
 
 Row = Sequence[object]
 

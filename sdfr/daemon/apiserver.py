@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from sdfr.api import STATE, ApiState, Runner, TCPSite, UnixSite, create_app
-from sdfr.config import Config, from_args, split_hostport
+from sdfr.config.load import Config, from_args, split_hostport
 from sdfr.daemon import channel, logs
 from sdfr.daemon.channel import Host
 from sdfr.errors import ConfigError

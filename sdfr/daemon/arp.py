@@ -1,6 +1,6 @@
 """The address layer's I/O: ARP on a raw packet socket, addresses through netlink.
 
-Thin on purpose: every decision is `sdfr.addressing.Addressing`'s; this
+Thin on purpose: every decision is `sdfr.protocol.addressing.Addressing`'s; this
 module only turns frames into `Arp` records and `ArpSend`/`Assign`/`Release`
 into frames and kernel calls.
 """
@@ -14,8 +14,8 @@ from concurrent.futures import ThreadPoolExecutor
 from ipaddress import IPv4Address
 from typing import Any
 
-from sdfr.addressing import PREFIX_LEN, ZERO, Arp, ArpSend
 from sdfr.errors import SdfrError
+from sdfr.protocol.addressing import PREFIX_LEN, ZERO, Arp, ArpSend
 
 ETH_P_ARP = 0x0806
 BROADCAST = b"\xff" * 6

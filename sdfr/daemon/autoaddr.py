@@ -1,7 +1,7 @@
-"""`--addressing auto` in the discovery layer: the address machine (sdfr.addressing) carried
-out on the fleet interface (ARP frames heard and sent, the address given to or taken from the
-kernel over netlink, the machine's one timer). Imported only with `--addressing auto`: a robot
-with a fixed address never pays for the ARP machinery."""
+"""`--addressing auto` in the discovery layer: the address machine (sdfr.protocol.addressing)
+carried out on the fleet interface (ARP frames heard and sent, the address given to or taken
+from the kernel over netlink, the machine's one timer). Imported only with `--addressing auto`:
+a robot with a fixed address never pays for the ARP machinery."""
 
 from __future__ import annotations
 
@@ -12,10 +12,11 @@ import time
 from collections.abc import Callable
 from ipaddress import IPv4Address
 
-from sdfr import netif, status
-from sdfr.addressing import AddrConfig, Addressing, Assign, Release
 from sdfr.daemon.arp import ArpSocket, Netlink
 from sdfr.daemon.sockets import rearm
+from sdfr.host import netif
+from sdfr.protocol.addressing import AddrConfig, Addressing, Assign, Release
+from sdfr.records import status
 
 log = logging.getLogger("sdfrd.discovery")
 

@@ -6,7 +6,8 @@ status file). Besides the store they speak over two unix datagram sockets in the
 directory, and each layer beats to the supervisor on a pipe:
 
 - STATUS_SOCKET, bound by the API layer; the discovery layer sends it
-  - its status record (`sdfr.status.DiscoveryStatus` as JSON) when it changed and when asked:
+  - its status record (`sdfr.records.status.DiscoveryStatus` as JSON) when it changed and
+    when asked:
     the status and the discovery layer's liveness without touching the disk;
   - EVENTS when it stored new rows in the event log: GET /events reads them now.
 - CONTROL_SOCKET, bound by the discovery layer; the API layer sends it

@@ -16,7 +16,7 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
-from sdfr.status import Describe
+from sdfr.records.status import Describe
 
 log = logging.getLogger("sdfrd.describe")
 

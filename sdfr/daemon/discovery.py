@@ -21,8 +21,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from sdfr import auth, events, keystore, netif, status
-from sdfr.config import IFACE_HOST, Config, describe_address, from_args, location_url
+from sdfr.config import keystore
+from sdfr.config.load import IFACE_HOST, Config, describe_address, from_args, location_url
 from sdfr.daemon import channel, logs, reporting
 from sdfr.daemon.channel import Host
 from sdfr.daemon.describe import DescribeServer
@@ -30,8 +30,10 @@ from sdfr.daemon.fleetlog import FleetLog
 from sdfr.daemon.sockets import open_multicast_socket, rearm
 from sdfr.daemon.unknownkeys import UnknownKeys
 from sdfr.errors import SdfrError
-from sdfr.model import PeerRecord
-from sdfr.protocol import Core
+from sdfr.host import netif
+from sdfr.protocol import Core, auth
+from sdfr.records import events, status
+from sdfr.records.model import PeerRecord
 from sdfr.store import StateWriteError, Store
 
 if TYPE_CHECKING:

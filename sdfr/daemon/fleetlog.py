@@ -15,10 +15,10 @@ import logging
 from collections import Counter
 from collections.abc import Iterable, Sequence
 
-from sdfr import events
 from sdfr.daemon.logs import FIELDS
-from sdfr.limits import TokenBucket
-from sdfr.model import CONTROL_RE, PeerRecord, Service
+from sdfr.protocol.limits import TokenBucket
+from sdfr.records import events
+from sdfr.records.model import CONTROL_RE, PeerRecord, Service
 
 log = logging.getLogger("sdfrd.fleet")
 

@@ -1,5 +1,6 @@
-"""The discovery layer's status record (sdfr.status.DiscoveryStatus): the parts that come from
-the protocol core and from the layer's own failures, and where the record goes (`StatusOut`)."""
+"""The discovery layer's status record (sdfr.records.status.DiscoveryStatus): the
+parts that come from the protocol core and from the layer's own failures, and where the record
+goes (`StatusOut`)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sdfr import status
 from sdfr.daemon import channel
+from sdfr.records import status
 from sdfr.store import StateWriteError, Store
 from sdfr.wire import MESSAGE_TYPES
 

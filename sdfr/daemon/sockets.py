@@ -8,9 +8,9 @@ import socket
 import struct
 from collections.abc import Callable
 
-from sdfr import netif
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.errors import SdfrError
+from sdfr.host import netif
 
 
 def open_multicast_socket(cfg: Config, iface: str, source: str = "") -> socket.socket:

@@ -48,11 +48,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from sdfr import keystore, netif, procfs, wifi
-from sdfr.config import Config, from_args, to_args
+from sdfr.config import keystore
+from sdfr.config.load import Config, from_args, to_args
 from sdfr.daemon import logs, notify
 from sdfr.daemon.channel import SERVING, Host, Stopper
 from sdfr.errors import SdfrError
+from sdfr.host import netif, procfs, wifi
 from sdfr.store import Store
 
 log = logging.getLogger("sdfrd")

@@ -18,7 +18,7 @@ Messages (see sdfr.wire):
   digest, so a robot whose services did not change costs a few hundred bytes.
 - Byebye (NOTIFY ssdp:byebye): graceful departure.
 
-Trust (see also sdfr.auth, and docs/security.md for each claim's test):
+Trust (see also sdfr.protocol.auth, and docs/security.md for each claim's test):
 - Pings and pinging beacons carry a 64-bit random nonce; only a robot's answer to one of ours,
   from where the ping went, changes what is believed of it (boot, version, digest, address),
   and a robot is listed reachable only while it answered lately.  A robot never heard, a new,
@@ -40,7 +40,9 @@ what arrives), and the parts `Core` drives, plain functions of the state: `sendi
 seal, bound the bytes), `beacons` (beacons, pings, round trips, the indicator), `challenges`
 (challenges, invitations, ping replies, our own id), `trust` (the gate, proofs, the peer
 table), `updates` (announcing, serving and fetching service sets, deltas, catch-up), `plain`
-(plain SSDP clients) and `timers` (what is due when).
+(plain SSDP clients) and `timers` (what is due when).  Beside the core, and imported by
+it or by the daemon on their own: `auth` (the keyring, seals, replay windows), `limits`
+(token buckets) and `addressing` (address self-configuration, another automaton).
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 from sdfr import wire
-from sdfr.auth import Sealed
 from sdfr.protocol import beacons, sending
+from sdfr.protocol.auth import Sealed
 from sdfr.protocol.config import CHALLENGE_PAD, CHALLENGE_RATE, MAX_PINGS, Addr
 from sdfr.protocol.peers import Conflict, Peer, _Ping
 from sdfr.protocol.state import CoreState

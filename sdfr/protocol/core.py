@@ -7,13 +7,13 @@ import ipaddress
 import math
 from collections.abc import Iterable, Sequence
 
-from sdfr import auth, wire
-from sdfr.auth import Keyring
-from sdfr.model import PeerRecord, Service, service_digest
-from sdfr.protocol import beacons, challenges, plain, sending, timers, trust, updates
+from sdfr import wire
+from sdfr.protocol import auth, beacons, challenges, plain, sending, timers, trust, updates
+from sdfr.protocol.auth import Keyring
 from sdfr.protocol.config import MAX_REPLY_TO, Addr, Outgoing, answers_beacon
 from sdfr.protocol.peers import Peer
 from sdfr.protocol.state import CoreState
+from sdfr.records.model import PeerRecord, Service, service_digest
 from sdfr.wire import WANT_ALL, Alive, Byebye, Discovery, Reject, Response, Update
 
 _KIND = {Discovery: "discovery", Response: "response", Update: "update", Alive: "alive"}

@@ -6,9 +6,9 @@ import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
-from sdfr.auth import ReplayWindow
-from sdfr.model import Service
+from sdfr.protocol.auth import ReplayWindow
 from sdfr.protocol.config import Addr
+from sdfr.records.model import Service
 from sdfr.wire import Update
 
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import ipaddress
 
-from sdfr import auth
-from sdfr.protocol import sending
+from sdfr.protocol import auth, sending
 from sdfr.protocol.config import Addr
 from sdfr.protocol.state import CoreState
 from sdfr.wire import Discovery, Response

@@ -3,7 +3,8 @@ and never more bytes to an address that has not proven a round trip than it sent
 
 from __future__ import annotations
 
-from sdfr import auth, wire
+from sdfr import wire
+from sdfr.protocol import auth
 from sdfr.protocol.config import Addr
 from sdfr.protocol.state import CoreState
 from sdfr.wire import Discovery

@@ -14,10 +14,8 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from urllib.parse import urlsplit
 
-from sdfr import auth
-from sdfr.auth import OPEN, Keyring
-from sdfr.limits import ByteCredit, KeyedBuckets, TokenBucket
-from sdfr.model import Service, service_digest
+from sdfr.protocol import auth
+from sdfr.protocol.auth import OPEN, Keyring
 from sdfr.protocol.config import (
     ADDR_CHALLENGE_BURST,
     ADDR_CHALLENGE_RATE,
@@ -35,7 +33,9 @@ from sdfr.protocol.config import (
     CoreConfig,
     Outgoing,
 )
+from sdfr.protocol.limits import ByteCredit, KeyedBuckets, TokenBucket
 from sdfr.protocol.peers import Conflict, Counters, Peer, _GroupPing, _Ping
+from sdfr.records.model import Service, service_digest
 from sdfr.wire import MAX_SEQ, WIRE_COMPACT, WIRE_FULL, Origin
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 from sdfr import wire
-from sdfr.auth import Sealed
 from sdfr.protocol import beacons, challenges
+from sdfr.protocol.auth import Sealed
 from sdfr.protocol.config import CHALLENGE_GAP, MAX_PEERS, MAX_UNPROVEN, Addr
 from sdfr.protocol.peers import Peer
 from sdfr.protocol.state import CoreState

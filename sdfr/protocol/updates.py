@@ -9,7 +9,6 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from sdfr import wire
-from sdfr.model import Service, service_digest
 from sdfr.protocol import challenges, sending
 from sdfr.protocol.config import (
     DELTA_STEPS,
@@ -22,6 +21,7 @@ from sdfr.protocol.config import (
 )
 from sdfr.protocol.peers import Peer, _Fetch
 from sdfr.protocol.state import CoreState
+from sdfr.records.model import Service, service_digest
 from sdfr.wire import WANT_ALL, Discovery, Reject, Update
 
 

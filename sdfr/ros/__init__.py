@@ -5,7 +5,7 @@
   publish/unpublish, search, list, health as a diagnosis, the neighbour list turned into
   change events; `spawn` starts sdfrd when none answers and stops it only if it started it.
 * `snapshot`: the neighbour list as the bridge reads it (`Snapshot` of `Robot`s), decoded
-  from the API's records (`sdfr.schema`); `core` and `source` both take it from here.
+  from the API's records (`sdfr.records.schema`); `core` and `source` both take it from here.
 * `source`: where the bridge learns that the neighbour list may have changed -- the seam.
   `EventStreamSource` follows the daemon's event stream (`GET /events`), `PollingSource`
   polls `GET /neighbors` with a bounded interval.

@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 from sdfr.client import Client, user_owner_token
 from sdfr.errors import ApiError
-from sdfr.model import (
+from sdfr.records.model import (
     AttrValue,
     Service,
 )

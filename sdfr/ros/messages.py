@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from sdfr.model import AttrValue, Service
+from sdfr.records.model import AttrValue, Service
 from sdfr.ros.core import BridgeError, Change, Diagnosis, ServiceRequest
 from sdfr.ros.snapshot import Robot, Snapshot
 

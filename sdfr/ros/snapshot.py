@@ -1,5 +1,5 @@
 """What the bridge reads from sdfrd: the neighbour list as a `Snapshot` of `Robot`s, decoded
-from the API's records (`sdfr.schema`); the bridge (`core`) and the change sources
+from the API's records (`sdfr.records.schema`); the bridge (`core`) and the change sources
 (`source`) both take it from here."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import msgspec
 
 from sdfr.client import Client
 from sdfr.errors import SdfrError
-from sdfr.model import Service, ServiceOutput
-from sdfr.schema import LocalService, Neighbor
+from sdfr.records.model import Service, ServiceOutput
+from sdfr.records.schema import LocalService, Neighbor
 
 
 class BridgeError(SdfrError):
@@ -75,7 +75,7 @@ def _known_services(items: object) -> object:
 
 
 def robots_from_json(items: object, what: str = "neighbors") -> tuple[Robot, ...]:
-    """The daemon's robot list (`sdfr.schema.Neighbor`s), checked; BridgeError naming what
+    """The daemon's robot list (`sdfr.records.schema.Neighbor`s), checked; BridgeError naming what
     was wrong otherwise."""
     try:
         parsed = msgspec.convert(_known_services(items), list[Neighbor])
@@ -96,7 +96,7 @@ def robots_from_json(items: object, what: str = "neighbors") -> tuple[Robot, ...
 
 
 def services_from_json(items: object) -> tuple[Service, ...]:
-    """This robot's registrations (`sdfr.schema.LocalService`s) as services (a lease's `ttl`
+    """This robot's registrations (`sdfr.records.schema.LocalService`s) as services (a lease's `ttl`
     and `expires` left out)."""
     try:
         parsed = msgspec.convert(

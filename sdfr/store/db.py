@@ -12,9 +12,9 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from sdfr import events as event_log
-from sdfr.events import Event
-from sdfr.model import PeerRecord, Service
+from sdfr.records import events as event_log
+from sdfr.records.events import Event
+from sdfr.records.model import PeerRecord, Service
 from sdfr.store.files import SCHEMA, SCHEMA_VERSION, private_db, private_dir
 from sdfr.store.records import (
     DAEMON,
@@ -32,7 +32,7 @@ from sdfr.store.records import (
 )
 from sdfr.wire import MAX_BOOT_ID
 
-#: Events the log keeps (each is at most a few KiB: see sdfr.events.MAX_SERVICES_JSON).
+#: Events the log keeps (each is at most a few KiB: see sdfr.records.events.MAX_SERVICES_JSON).
 EVENT_LOG_MAX = 4096
 #: Boot ids count seconds from 2020-01-01 UTC (BOOTID.UPNP.ORG holds 31 bits: until 2088).
 BOOT_EPOCH = 1577836800

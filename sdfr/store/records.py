@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sdfr.errors import SdfrError
-from sdfr.model import Service
+from sdfr.records.model import Service
 
 
 class StoreError(SdfrError):

@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from sdfr import wire
-from sdfr.auth import OPEN, Keyring
-from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Addr, Core, CoreConfig
+from sdfr.protocol.auth import OPEN, Keyring
+from sdfr.records.model import PeerRecord, Service
 
 
 @dataclass

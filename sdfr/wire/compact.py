@@ -4,7 +4,7 @@ import zlib
 from collections.abc import Sequence
 from itertools import pairwise
 
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.wire.fields import (
     _body,
     _check_location,

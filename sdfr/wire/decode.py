@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from itertools import pairwise
 
 from sdfr.errors import ValidationError
-from sdfr.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
+from sdfr.records.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
 from sdfr.wire.messages import (
     _JSON_DECODER,
     _MAN,

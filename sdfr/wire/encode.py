@@ -5,7 +5,7 @@ from collections.abc import Sequence
 from functools import cache, lru_cache
 
 from sdfr.errors import ValidationError
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.wire.compact import _compact, _compact_parts
 from sdfr.wire.fields import (
     _body,

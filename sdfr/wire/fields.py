@@ -5,7 +5,7 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Literal
 
-from sdfr.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
+from sdfr.records.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
 from sdfr.wire.messages import (
     _BODY_CLOSE,
     _BODY_OPEN,

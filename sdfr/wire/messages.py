@@ -8,11 +8,11 @@ from functools import lru_cache
 from typing import Literal, NoReturn, TypeAlias
 
 from sdfr import __version__
-from sdfr.model import Service
+from sdfr.records.model import Service
 
 MAX_DATAGRAM = 1400
-#: Room every encoded datagram leaves for a seal (sdfr.auth): a keyed fleet then has exactly the
-#: limits of an open one, and a service accepted before a key was set still fits after.
+#: Room every encoded datagram leaves for a seal (sdfr.protocol.auth): a keyed fleet then has
+#: exactly the limits of an open one, and a service accepted before a key was set still fits after.
 SEAL_RESERVE = 80
 #: Largest datagram `encode` and `encode_update_parts` produce.
 MAX_ENCODED = MAX_DATAGRAM - SEAL_RESERVE
@@ -58,10 +58,10 @@ class Origin:
     """Who sent an SDfR message."""
 
     fleet: int  # 0..255, X-SDFR-FLEET
-    robot_id: str  # sdfr.model.ROBOT_ID_RE, X-SDFR-ROBOT
+    robot_id: str  # sdfr.records.model.ROBOT_ID_RE, X-SDFR-ROBOT
     boot_id: int  # BOOTID.UPNP.ORG, 0 .. 2**31-1
     version: int  # X-SDFR-VERSION, 0 .. 2**53; CONFIGID.UPNP.ORG carries version % 2**24
-    digest: str  # X-SDFR-DIGEST, 16 lowercase hex chars (sdfr.model.service_digest)
+    digest: str  # X-SDFR-DIGEST, 16 lowercase hex chars (sdfr.records.model.service_digest)
     #: The wire version the sender speaks (X-SDFR-WIRE; WIRE_COMPACT for a compact datagram).
     wire: int = WIRE_FULL
 

@@ -32,7 +32,7 @@ from netlab.capture import Capture, start_all, stop_all
 from netlab.doctor import capabilities
 from netlab.pcap import read_run
 from sdfr.errors import ApiError
-from sdfr.model import AttrValue
+from sdfr.records.model import AttrValue
 
 pytestmark = [pytest.mark.root, pytest.mark.netem]
 

@@ -15,7 +15,7 @@ from netlab.analysis import arp_counts_by_sender
 from netlab.capture import Capture
 from netlab.lab import Lab
 from netlab.pcap import read_run
-from sdfr.addressing import candidates
+from sdfr.protocol.addressing import candidates
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root

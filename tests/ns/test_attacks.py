@@ -37,7 +37,8 @@ import pytest
 
 from netlab import kernel, naming
 from netlab.lab import Lab
-from sdfr import keystore, wire
+from sdfr import wire
+from sdfr.config import keystore
 from sdfr.protocol import MISS_LIMIT
 from tests.support.attacks import (
     GROUP,

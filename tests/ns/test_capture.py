@@ -17,7 +17,7 @@ from netlab import analysis, naming, paper, pcap
 from netlab.capture import Capture, CaptureError, CaptureInfo, sidecar_path, start_all, stop_all
 from netlab.lab import Lab
 from netlab.report import write_report
-from sdfr import procfs
+from sdfr.host import procfs
 
 pytestmark = pytest.mark.root
 

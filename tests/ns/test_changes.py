@@ -10,8 +10,8 @@ from collections.abc import Callable
 import pytest
 
 from netlab.lab import Lab
-from sdfr.calls import Change
 from sdfr.client import Client
+from sdfr.client.calls import Change
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root

@@ -15,8 +15,8 @@ from typing import Any
 import pytest
 
 from netlab.lab import Lab
-from sdfr import keystore
 from sdfr.client import Client
+from sdfr.config import keystore
 from sdfr.daemon import MALLOC_TUNABLES
 from sdfr.daemon.supervisor import LOCK_NAME, lock_state_dir
 from tests.support.waiting import poll

@@ -17,7 +17,7 @@ import pytest
 
 from netlab.lab import Lab
 from sdfr.errors import ApiError
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.store import Store
 from tests.support.fleets import captured
 

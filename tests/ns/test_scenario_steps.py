@@ -41,8 +41,8 @@ from netlab.scenario import (
     Wait,
     run,
 )
-from sdfr.addressing import candidates
 from sdfr.errors import ApiError
+from sdfr.protocol.addressing import candidates
 from tests.support.fleets import unique_lab_name
 
 pytestmark = pytest.mark.root

@@ -22,10 +22,12 @@ import pytest
 
 from netlab import procstat
 from netlab.lab import Lab
-from sdfr import auth, keystore, wifi, wire
+from sdfr import wire
 from sdfr.client import Client
-from sdfr.model import Service, service_digest
-from sdfr.protocol import MAX_UNPROVEN
+from sdfr.config import keystore
+from sdfr.host import wifi
+from sdfr.protocol import MAX_UNPROVEN, auth
+from sdfr.records.model import Service, service_digest
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root

@@ -36,8 +36,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from sdfr import wire
-from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Addr
+from sdfr.records.model import PeerRecord, Service
 from sdfr.testing.simnet import Node, SimNet
 from sdfr.testing.simnet import kind_of_message as kind
 

@@ -8,7 +8,7 @@ import random
 
 from hypothesis import strategies as st
 
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.wire import (
     REJECT_REASONS,
     WANT_ALL,
@@ -51,7 +51,7 @@ wants = st.one_of(
         lambda xs: tuple(sorted(xs))
     ),
 )
-#: Text a service may hold: anything but control characters (sdfr.model.CONTROL_CHARS).
+#: Text a service may hold: anything but control characters (sdfr.records.model.CONTROL_CHARS).
 printable = st.characters(blacklist_categories=("Cc", "Cs", "Zl", "Zp"))
 attr_values = st.one_of(
     st.text(printable, max_size=20),

@@ -7,7 +7,7 @@ from sdfr.api.http import Request, Response
 from sdfr.api.replies import json_response
 from sdfr.api.state import neighbor_json, state_of
 from sdfr.errors import ValidationError
-from sdfr.model import PeerRecord
+from sdfr.records.model import PeerRecord
 
 
 def _neighbors(peers: list[PeerRecord], include_unreachable: bool) -> dict[str, object]:

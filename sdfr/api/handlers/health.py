@@ -8,7 +8,7 @@ from sdfr import __version__
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import json_response
 from sdfr.api.state import FAILING_AFTER, ApiState, DiscoveryState, state_of
-from sdfr.status import DiscoveryStatus
+from sdfr.records.status import DiscoveryStatus
 
 
 def _discovery_json(disc: DiscoveryState) -> dict[str, object]:

@@ -5,15 +5,16 @@ from __future__ import annotations
 import logging
 import time
 
-from sdfr import auth, keystore
 from sdfr.api.doors import over_unix_socket
 from sdfr.api.handlers.request import only_params, query_flag
 from sdfr.api.http import Request, Response
 from sdfr.api.replies import RequestError, cannot_write_status, json_response, read_json
 from sdfr.api.state import ApiState, state_of
+from sdfr.config import keystore
+from sdfr.config.keystore import KeyringFileError, StoredKeyring
 from sdfr.daemon.channel import notify_discovery
 from sdfr.errors import ConfigError, ValidationError
-from sdfr.keystore import KeyringFileError, StoredKeyring
+from sdfr.protocol import auth
 from sdfr.store import write_reason
 
 log = logging.getLogger("sdfr.api")

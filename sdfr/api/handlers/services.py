@@ -16,7 +16,7 @@ from sdfr.api.replies import RequestError, json_response, read_json
 from sdfr.api.state import ApiState, state_of
 from sdfr.daemon.channel import notify_discovery
 from sdfr.errors import ValidationError
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.store import Add, Caller, Lease, NotOwner, Remove, Renew
 from sdfr.wire import check_service_fits
 

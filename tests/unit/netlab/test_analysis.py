@@ -32,8 +32,9 @@ from netlab.pcap import PcapError, Record
 from netlab.report import write_report
 from netlab.samples import AgreementSample, ConnectivitySample
 from netlab.sdfr_layer import SDfR, describe
-from sdfr import auth, wire
-from sdfr.model import Service
+from sdfr import wire
+from sdfr.protocol import auth
+from sdfr.records.model import Service
 
 GROUP = wire.DEFAULT_GROUP
 T0 = 1_700_000_000.0

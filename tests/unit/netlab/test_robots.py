@@ -11,7 +11,7 @@ from netlab import docker
 from netlab.errors import NetlabError
 from netlab.lab import Lab
 from netlab.robots import ContainerKind, Robot, daemon_container, kind_for
-from sdfr.config import option_flags
+from sdfr.config.load import option_flags
 
 
 def robot(tmp_path: Path, runtime: str = "docker") -> Robot:

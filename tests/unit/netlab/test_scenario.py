@@ -62,7 +62,7 @@ from netlab.scenario import (
     run,
 )
 from netlab.truth import TruthState
-from sdfr.addressing import candidates
+from sdfr.protocol.addressing import candidates
 from tests.support.fakelab import BEACON, FakeLab, quiet
 
 # -- durations -------------------------------------------------------------------------------

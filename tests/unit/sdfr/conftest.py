@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.store import Store
 from tests.support.api import ApiLayer
 

@@ -10,7 +10,7 @@ from ipaddress import IPv4Address
 
 import pytest
 
-from sdfr.addressing import (
+from sdfr.protocol.addressing import (
     ZERO,
     AddrConfig,
     Addressing,

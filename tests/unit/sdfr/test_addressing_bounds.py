@@ -8,7 +8,7 @@ import subprocess
 import sys
 import tracemalloc
 
-from sdfr.addressing import AddrConfig, Addressing, Arp, State
+from sdfr.protocol.addressing import AddrConfig, Addressing, Arp, State
 
 ROBOT = "02:00:00:00:12:34"
 #: Lower than any robot's MAC: it keeps every address it claims, the robot moves each time.
@@ -72,7 +72,7 @@ def test_a_flood_of_conflicts_keeps_memory_bounded_and_counts_them_all() -> None
 # octets are 1-254 once, then again from the start (the generator used to loop for ever here).
 EXHAUST = """
 import itertools
-from sdfr.addressing import candidates
+from sdfr.protocol.addressing import candidates
 n = 254 * 254
 seq = candidates(7, "02:00:00:00:12:34")
 first = list(itertools.islice(seq, n))

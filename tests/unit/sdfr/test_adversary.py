@@ -43,9 +43,9 @@ from hypothesis.stateful import (
 )
 
 from sdfr import wire
-from sdfr.auth import OPEN, Keyring
-from sdfr.model import Service
 from sdfr.protocol import Addr
+from sdfr.protocol.auth import OPEN, Keyring
+from sdfr.records.model import Service
 from sdfr.testing.simnet import BEACON, SimNet, services
 from tests.support.adversary import (
     INVARIANTS,

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 from aiohttp import ClientSession
 
-from sdfr import auth, wire
+from sdfr import wire
 from sdfr.api import (
     HEARTBEAT_STALE,
     STATE,
@@ -29,9 +29,10 @@ from sdfr.api import (
     pid_alive,
 )
 from sdfr.api.state import discovery_state
-from sdfr.config import Config, location_max_len
-from sdfr.model import PeerRecord, Service
-from sdfr.status import DiscoveryStatus
+from sdfr.config.load import Config, location_max_len
+from sdfr.protocol import auth
+from sdfr.records.model import PeerRecord, Service
+from sdfr.records.status import DiscoveryStatus
 from sdfr.store import Store
 from tests.support.api import aio, serve, status
 

@@ -16,9 +16,9 @@ from aiohttp import ClientSession
 
 from sdfr.api import HEARTBEAT_STALE, STATE, create_app
 from sdfr.api.state import COUNTERS_FRESH, LIVENESS_WAIT, STATUS_WAIT
-from sdfr.config import Config
-from sdfr.events import Event
-from sdfr.model import Service
+from sdfr.config.load import Config
+from sdfr.records.events import Event
+from sdfr.records.model import Service
 from sdfr.store import EVENT_LOG_MAX, Store
 from tests.support.api import ApiLayer, aio, serve, status
 from tests.unit.sdfr.test_api import FLEET, peer

@@ -21,7 +21,6 @@ from aiohttp import ClientSession, UnixConnector
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sdfr import auth, keystore
 from sdfr.api import (
     MAX_BODY,
     STATE,
@@ -31,8 +30,10 @@ from sdfr.api import (
     UnixSite,
     create_app,
 )
-from sdfr.auth import Keyring
-from sdfr.config import Config
+from sdfr.config import keystore
+from sdfr.config.load import Config
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring
 from sdfr.store import Store, write_error
 from tests.support.api import aio, free_port, raw_exchange, serve, status
 

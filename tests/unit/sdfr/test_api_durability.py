@@ -14,7 +14,7 @@ import pytest
 from aiohttp import ClientSession
 
 from sdfr.api import create_app
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.store import Store
 from tests.support.api import aio, serve
 

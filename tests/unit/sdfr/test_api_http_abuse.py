@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from sdfr.api import Runner, TCPSite, create_app
 from sdfr.api.httpparse import MAX_HEAD, MAX_LINE
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.store import Store
 from tests.support.api import free_port
 

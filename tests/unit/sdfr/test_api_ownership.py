@@ -22,7 +22,7 @@ import pytest
 from sdfr.api import Runner, TCPSite, UnixSite, create_app
 from sdfr.api.events import STREAMS_MAX
 from sdfr.cli import main as sdfr
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.ros.core import Bridge, ServiceRequest
 from sdfr.ros.params import NodeParams
 from sdfr.store import Store

@@ -13,9 +13,9 @@ import struct
 from collections.abc import Iterator
 from pathlib import Path
 
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.daemon.apiserver import serve
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.store import Store
 from tests.support.api import aio, free_port
 

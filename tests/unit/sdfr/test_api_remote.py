@@ -12,7 +12,7 @@ import pytest
 from aiohttp import ClientSession
 
 from sdfr.api import Runner, TCPSite, create_app
-from sdfr.config import Config, from_args
+from sdfr.config.load import Config, from_args
 from sdfr.errors import ConfigError
 from sdfr.store import Store
 from tests.support.api import aio, free_port

@@ -1,4 +1,4 @@
-"""Seals, key ids, keyrings and replay windows (sdfr.auth), on bytes alone."""
+"""Seals, key ids, keyrings and replay windows (sdfr.protocol.auth), on bytes alone."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sdfr import auth, wire
-from sdfr.auth import OPEN, Keyring, ReplayWindow, Sealed
-from sdfr.model import Service
+from sdfr import wire
+from sdfr.protocol import auth
+from sdfr.protocol.auth import OPEN, Keyring, ReplayWindow, Sealed
+from sdfr.records.model import Service
 from sdfr.wire import MAX_DATAGRAM, Alive, Origin, Reject, Update
 
 KEY = bytes(range(32))

@@ -18,15 +18,16 @@ from pathlib import Path
 
 import pytest
 
-from sdfr import auth, keystore
 from sdfr.api import create_app
 from sdfr.cli import main as sdfr
 from sdfr.cli.args import KIND_NAMES
 from sdfr.cli.show import ChangeLines, escape
 from sdfr.client import Change
-from sdfr.config import Config
-from sdfr.events import Tracker
-from sdfr.model import PeerRecord, Service
+from sdfr.config import keystore
+from sdfr.config.load import Config
+from sdfr.protocol import auth
+from sdfr.records.events import Tracker
+from sdfr.records.model import PeerRecord, Service
 from sdfr.store import Store
 from tests.support.api import ApiLayer, aio
 from tests.unit.sdfr.test_api_doors import over_unix_socket

@@ -10,7 +10,8 @@ import sys
 import pytest
 
 import sdfr
-from sdfr import __version__, cli, config
+from sdfr import __version__, cli
+from sdfr.config import load
 
 
 def parsers(p: argparse.ArgumentParser, name: str) -> list[tuple[str, argparse.ArgumentParser]]:
@@ -22,7 +23,7 @@ def parsers(p: argparse.ArgumentParser, name: str) -> list[tuple[str, argparse.A
     return out
 
 
-ALL = parsers(cli.build_parser(), "sdfr") + parsers(config.build_parser(), "sdfrd")
+ALL = parsers(cli.build_parser(), "sdfr") + parsers(load.build_parser(), "sdfrd")
 
 
 @pytest.mark.parametrize("where, parser", ALL, ids=[n for n, _ in ALL])
@@ -69,7 +70,7 @@ def test_a_mistyped_sdfrd_flag_is_one_line_with_the_closest_spelling(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     with pytest.raises(SystemExit) as done:
-        config.from_args(["--iface-name", "lo"])
+        load.from_args(["--iface-name", "lo"])
     assert done.value.code == 2
     assert capsys.readouterr().err == (
         "sdfrd: unknown option --iface-name (did you mean '--iface'?); `sdfrd --help` shows usage\n"

@@ -15,13 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from sdfr import auth, keystore
-from sdfr.auth import Keyring
 from sdfr.cli import main as sdfr
 from sdfr.cli import typed_value
 from sdfr.client import Client
+from sdfr.config import keystore
 from sdfr.errors import ApiError
-from sdfr.model import PeerRecord, Service
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring
+from sdfr.records.model import PeerRecord, Service
 from sdfr.store import Store
 from tests.support.api import ApiLayer, free_port
 

@@ -18,11 +18,11 @@ from typing import Any
 
 import pytest
 
-from sdfr import calls, clientcore, schema
 from sdfr.aio import AsyncClient
-from sdfr.calls import Change
-from sdfr.client import Client
+from sdfr.client import Client, calls, core
+from sdfr.client.calls import Change
 from sdfr.errors import ApiError
+from sdfr.records import schema
 from tests.support.api import ApiLayer, aio, free_port
 from tests.support.clients import connect
 from tests.unit.sdfr.test_client_cli import save_fleet
@@ -234,7 +234,7 @@ def test_both_clients_are_the_one_api_with_the_same_construction() -> None:
     def public(cls: type) -> set[str]:
         return {n for n in dir(cls) if not n.startswith("_")}
 
-    assert issubclass(Client, clientcore.Api) and issubclass(AsyncClient, clientcore.Api)
+    assert issubclass(Client, core.Api) and issubclass(AsyncClient, core.Api)
     assert public(Client) == public(AsyncClient)
     assert inspect.signature(Client) == inspect.signature(AsyncClient)
     assert inspect.iscoroutinefunction(AsyncClient.call)
@@ -276,7 +276,7 @@ def test_importing_the_client_loads_neither_the_daemon_nor_aiohttp(module: str) 
     )
     loaded = {line.rpartition("|")[2].strip() for line in out.stderr.splitlines()}
     assert module in loaded
-    for heavy in ("sdfr.wire", "sdfr.protocol", "sdfr.config", "sdfr.daemon", "aiohttp"):
+    for heavy in ("sdfr.wire", "sdfr.protocol", "sdfr.config.load", "sdfr.daemon", "aiohttp"):
         assert not {m for m in loaded if m == heavy or m.startswith(heavy + ".")}, heavy
 
 

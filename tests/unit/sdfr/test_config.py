@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from sdfr import config
-from sdfr import options as config_options
-from sdfr.config import Config, build_parser, from_args, to_args
+from sdfr.config import load
+from sdfr.config import options as config_options
+from sdfr.config.load import Config, build_parser, from_args, to_args
 from sdfr.daemon import supervisor
 from sdfr.errors import ConfigError
 
@@ -120,7 +120,7 @@ def test_plain_flags_read_as_argparse_reads_them(argv: list[str]) -> None:
         args = vars(build_parser().parse_args(argv))
     except SystemExit:
         args = None
-    plain = config._plain_flags(argv)
+    plain = load._plain_flags(argv)
     if argv in NOT_PLAIN:
         assert plain is None
     else:
@@ -266,16 +266,16 @@ def test_the_layers_option(tmp_path: Path) -> None:
 def test_every_option_is_one_field_with_its_help_and_kind() -> None:
     """The one place an option is defined: a Config field whose metadata the flags, the TOML
     keys, `to_args` and netlab's checks read."""
-    for name, f in config.OPTIONS.items():
+    for name, f in load.OPTIONS.items():
         assert f.metadata["help"] and config_options.kind(name), name
-        assert config.flag(name) in build_parser().format_help()
-    assert [n for n, f in config.OPTIONS.items() if not f.metadata["passed"]] == ["wifi_secret"]
+        assert load.flag(name) in build_parser().format_help()
+    assert [n for n, f in load.OPTIONS.items() if not f.metadata["passed"]] == ["wifi_secret"]
 
 
 def test_option_flags_give_lists_comma_separated_and_leave_out_the_unset() -> None:
     opts = {"api_allowed_hosts": ("a", "b"), "key_file": None, "api_allowed_origins": ()}
-    assert config.option_flags(opts) == ["--api-allowed-hosts", "a,b"]
-    assert from_args(config.option_flags({"indicator_thresholds": [0.3, 0.6]})) == Config(
+    assert load.option_flags(opts) == ["--api-allowed-hosts", "a,b"]
+    assert from_args(load.option_flags({"indicator_thresholds": [0.3, 0.6]})) == Config(
         indicator_thresholds=(0.3, 0.6)
     )
 
@@ -290,11 +290,11 @@ def test_option_flags_give_lists_comma_separated_and_leave_out_the_unset() -> No
 )
 def test_options_config_names_a_typo_or_a_bad_value(options: dict[str, object], says: str) -> None:
     with pytest.raises(ConfigError, match=says):
-        config.options_config(options)
+        load.options_config(options)
 
 
 def test_options_config_takes_python_and_toml_values() -> None:
-    cfg = config.options_config(
+    cfg = load.options_config(
         {"miss_limit": 5, "state_dir": Path("/x"), "ping_interval": "0.5", "iface": None}
     )
     assert (cfg.miss_limit, cfg.state_dir, cfg.ping_interval, cfg.iface) == (

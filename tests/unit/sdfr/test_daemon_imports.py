@@ -18,17 +18,17 @@ from sdfr.daemon import NOT_LOADED
 for name in NOT_LOADED:
     sys.modules.setdefault(name, None)
 from sdfr.daemon import supervisor
-from sdfr.config import from_args
+from sdfr.config.load import from_args
 from_args(["--iface", "eth0", "--fleet=2", "--state-dir", "/x", "--layers", "threads"])
 supervisor.preload()
 print(" ".join(sorted(m for m, v in sys.modules.items() if v is not None)))
 """
 
 NOT_IMPORTED = {
-    "argparse": "flags are read without it when plain (sdfr.config._plain_flags)",
+    "argparse": "flags are read without it when plain (sdfr.config.load._plain_flags)",
     "shutil": "argparse's help formatter imports it",
     "ctypes": "only --layers processes uses it",
-    "sdfr.addressing": "only --addressing auto",
+    "sdfr.protocol.addressing": "only --addressing auto",
     "sdfr.daemon.arp": "only --addressing auto",
     "difflib": "only a mistake's hint",
     "tomllib": "only --config",

@@ -1,4 +1,4 @@
-"""The changes feed's logic (sdfr.events.Tracker) and its log in the store."""
+"""The changes feed's logic (sdfr.records.events.Tracker) and its log in the store."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from sdfr import events
-from sdfr.events import Tracker
-from sdfr.model import PeerRecord, Service
+from sdfr.records import events
+from sdfr.records.events import Tracker
+from sdfr.records.model import PeerRecord, Service
 from sdfr.store import EVENT_LOG_MAX, Add, Expire, Remove, Renew, Store
 
 CAM = Service("c1", "cam", "camera/rgb", None, {"fps": 30})

@@ -10,11 +10,12 @@ import socket
 
 import pytest
 
-from sdfr import netif, wire
-from sdfr.config import Config
+from sdfr import wire
+from sdfr.config.load import Config
 from sdfr.daemon.discovery import open_multicast_socket
-from sdfr.model import ROBOT_ID_RE
+from sdfr.host import netif
 from sdfr.protocol import Core, CoreConfig
+from sdfr.records.model import ROBOT_ID_RE
 
 
 def test_own_multicast_heard_from_0_0_0_0_on_lo_is_our_echo() -> None:

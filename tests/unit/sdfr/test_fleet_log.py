@@ -9,7 +9,7 @@ from typing import Any
 from sdfr import wire
 from sdfr.daemon.fleetlog import FleetLog, duration
 from sdfr.daemon.logs import FIELDS
-from sdfr.model import PeerRecord, Service, service_digest
+from sdfr.records.model import PeerRecord, Service, service_digest
 from sdfr.testing.simnet import BEACON, SimNet
 
 

@@ -11,10 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from sdfr import auth, keystore, wifi
-from sdfr.auth import Keyring
+from sdfr.config import keystore
+from sdfr.config.keystore import KeySource, StoredKeyring
 from sdfr.daemon import supervisor
-from sdfr.keystore import KeySource, StoredKeyring
+from sdfr.host import wifi
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring
 from tests.support.logged import keep_daemon_logging, logged
 
 SECRET = "correct horse battery staple"
@@ -99,7 +101,7 @@ import sys
 from sdfr.daemon import NOT_LOADED
 for name in NOT_LOADED:
     sys.modules.setdefault(name, None)
-from sdfr import wifi
+from sdfr.host import wifi
 assert sys.modules["_hashlib"] is None
 print(wifi.datagram_key(sys.argv[1], 7).hex())
 """

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from sdfr.api import create_app
-from sdfr.config import Config
+from sdfr.config.load import Config
 from sdfr.daemon.discovery import DiscoveryLayer
 from sdfr.errors import SdfrError
 from sdfr.store import Store

@@ -1,4 +1,5 @@
-"""Key files and the keyring kept in the state directory (sdfr.keystore), and the state dir lock."""
+"""Key files and the keyring kept in the state directory (sdfr.config.keystore), and the
+state dir lock."""
 
 from __future__ import annotations
 
@@ -10,12 +11,13 @@ from pathlib import Path
 
 import pytest
 
-from sdfr import auth, keystore
-from sdfr.auth import OPEN, Keyring
+from sdfr.config import keystore
+from sdfr.config.keystore import KeyringError, StoredKeyring
 from sdfr.daemon import supervisor
 from sdfr.daemon.supervisor import lock_state_dir
 from sdfr.errors import ConfigError, SdfrError
-from sdfr.keystore import KeyringError, StoredKeyring
+from sdfr.protocol import auth
+from sdfr.protocol.auth import OPEN, Keyring
 from tests.support.logged import keep_daemon_logging, logged
 
 K1 = bytes(range(32))
@@ -70,7 +72,7 @@ def test_a_key_file_others_can_read_is_used_with_a_warning(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path = write(tmp_path / "k", base64.b64encode(K1).decode(), mode=0o644)
-    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+    with caplog.at_level(logging.WARNING, logger="sdfr.config.keystore"):
         assert keystore.read_key_file(path) == K1
     assert "chmod 600" in caplog.text and str(path) in caplog.text
 
@@ -141,7 +143,7 @@ def test_seed_keeps_a_keyring_a_rotation_changed(
 ) -> None:
     state = tmp_path / "state"
     keystore.save(state, StoredKeyring(Keyring.of([K2], mode="enforce")))
-    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+    with caplog.at_level(logging.WARNING, logger="sdfr.config.keystore"):
         ring = keystore.seed_keyring(state, key_file(tmp_path, K1), None)
     assert ring == Keyring.of([K2])  # the stored keyring wins over a stale key_file
     assert "update key_file" in caplog.text
@@ -160,7 +162,7 @@ def test_a_configured_mode_never_weakens_a_live_keyring(
     state = tmp_path / "state"
     keystore.save(state, StoredKeyring(Keyring.of([K1], mode=live)))
     before = keystore.keyring_path(state).read_bytes()
-    with logged("sdfr.keystore", level=logging.WARNING) as said:
+    with logged("sdfr.config.keystore", level=logging.WARNING) as said:
         ring = keystore.seed_keyring(state, key_file(tmp_path, K1), configured)
     assert ring.mode == live
     assert keystore.load_keyring(state).mode == live
@@ -203,7 +205,7 @@ def test_a_stronger_configured_mode_raises_the_keyring(
 
 
 def test_a_configured_mode_without_any_key_is_said_to_leave_the_fleet_open(tmp_path: Path) -> None:
-    with logged("sdfr.keystore", level=logging.WARNING) as said:
+    with logged("sdfr.config.keystore", level=logging.WARNING) as said:
         assert keystore.seed_keyring(tmp_path, None, "enforce") == OPEN
     [warning] = said
     assert "auth = enforce" in warning and "the fleet is open" in warning
@@ -307,7 +309,7 @@ def test_seed_with_the_key_file_already_in_the_keyring_is_quiet(
     state = tmp_path / "state"
     keystore.save(state, StoredKeyring(Keyring.of([K1, K2], primary=K2, mode="sign")))
     before = keystore.keyring_path(state).stat().st_mtime_ns
-    with caplog.at_level(logging.WARNING, logger="sdfr.keystore"):
+    with caplog.at_level(logging.WARNING, logger="sdfr.config.keystore"):
         ring = keystore.seed_keyring(state, key_file(tmp_path, K1), "sign")
     assert ring == Keyring.of([K1, K2], primary=K2, mode="sign")
     assert "update key_file" not in caplog.text

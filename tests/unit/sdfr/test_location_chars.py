@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 import pytest
 
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.wire import WIRE_COMPACT, Alive, Reject, Response, Update, decode, encode
 from tests.support.wire_data import LOCATION, ORIGIN
 
@@ -86,8 +86,8 @@ def test_a_location_ending_in_a_control_character_is_rejected(kind: str) -> None
 
 @pytest.mark.parametrize("kind", list(DATAGRAMS))
 def test_a_location_with_a_c1_control_or_a_line_separator_is_rejected(kind: str) -> None:
-    """The rest of what the API refuses in every text (sdfr.model.CONTROL_CHARS): C1 controls
-    (0x9b is a terminal's CSI) and the Unicode line and paragraph separators."""
+    """The rest of what the API refuses in every text (sdfr.records.model.CONTROL_CHARS): C1
+    controls (0x9b is a terminal's CSI) and the Unicode line and paragraph separators."""
 
     def forge(c: str) -> bytes:
         return _with_location(kind, HEADER[:12] + c.encode() + HEADER[12:])

@@ -11,7 +11,7 @@ from datetime import datetime
 
 import pytest
 
-from sdfr.config import from_args, to_args
+from sdfr.config.load import from_args, to_args
 from sdfr.daemon import logs
 from sdfr.daemon.logs import RepeatFilter
 from sdfr.errors import ConfigError
@@ -100,7 +100,7 @@ def test_every_logger_has_one_line_format_with_milliseconds(
     try:
         logs.setup("api", "debug")
         logging.getLogger("sdfr.api.access").debug("GET /health 200")
-        logging.getLogger("sdfr.keystore").warning("key %s is %d days old", "k1", 400)
+        logging.getLogger("sdfr.config.keystore").warning("key %s is %d days old", "k1", 400)
         try:
             raise OSError("disk full")
         except OSError:

@@ -15,7 +15,7 @@ import pytest
 
 import sdfr
 from sdfr.cli import EXAMPLES, example_text
-from sdfr.config import load_toml
+from sdfr.config.load import load_toml
 
 ROOT = Path(__file__).resolve().parents[3]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from sdfr import procfs
+from sdfr.host import procfs
 
 
 def fake_proc(tmp_path: Path, procs: dict[int, tuple[str, str, int]]) -> Path:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from sdfr import wire
-from sdfr.model import PeerRecord, Service
 from sdfr.protocol import Core, CoreConfig, updates
+from sdfr.records.model import PeerRecord, Service
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, sent, services
 from tests.support.wire_data import noisy_services
 

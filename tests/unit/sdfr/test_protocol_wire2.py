@@ -7,10 +7,11 @@ from __future__ import annotations
 import itertools
 import statistics
 
-from sdfr import auth, wire
-from sdfr.auth import Keyring
-from sdfr.model import Service
+from sdfr import wire
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring
 from sdfr.protocol.config import REPAIR_MEMORY, answers_beacon
+from sdfr.records.model import Service
 from sdfr.testing.simnet import BEACON, SimNet, kind_of, sent, services
 
 #: The product's ping: one per beacon period, so beacons are the pings.

@@ -18,7 +18,7 @@ import yaml
 
 from sdfr.client import Client
 from sdfr.errors import ApiError, ConfigError
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.ros.core import (
     QUALITY_REFRESH,
     Bridge,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from sdfr.status import FORMAT, Auth, Conflict, DiscoveryStatus, Errors, StateDir
+from sdfr.records.status import FORMAT, Auth, Conflict, DiscoveryStatus, Errors, StateDir
 
 
 def test_a_status_survives_json_whole() -> None:

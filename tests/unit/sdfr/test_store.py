@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from sdfr.model import PeerRecord, Service, service_digest
+from sdfr.records.model import PeerRecord, Service, service_digest
 from sdfr.store import BOOT_EPOCH, Store, StoreError
 
 
@@ -117,7 +117,7 @@ def test_service_validation_names_the_field(body: dict[str, object], field: str)
 
 def test_ids_with_a_trailing_newline_are_refused() -> None:
     from sdfr.errors import ValidationError
-    from sdfr.model import check_robot_id
+    from sdfr.records.model import check_robot_id
 
     with pytest.raises(ValidationError):
         check_robot_id("abc\n")

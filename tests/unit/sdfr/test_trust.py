@@ -13,9 +13,7 @@ from collections.abc import Iterator, Sequence
 
 import pytest
 
-from sdfr import auth, wire
-from sdfr.auth import Keyring, Mode
-from sdfr.model import Service, service_digest
+from sdfr import wire
 from sdfr.protocol import (
     CHALLENGE_BURST,
     CHALLENGE_RATE,
@@ -23,8 +21,11 @@ from sdfr.protocol import (
     SOURCE_BURST,
     SOURCE_RATE,
     Addr,
+    auth,
     updates,
 )
+from sdfr.protocol.auth import Keyring, Mode
+from sdfr.records.model import Service, service_digest
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, services
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Update
 from tests.support.wire_data import noisy_services

@@ -8,10 +8,10 @@ sender address, and answered unproven addresses with no more bytes than they sen
 
 from __future__ import annotations
 
-from sdfr import auth, wire
-from sdfr.auth import Keyring
-from sdfr.model import Service, service_digest
-from sdfr.protocol import UNPROVEN_BYTES, Addr, Core
+from sdfr import wire
+from sdfr.protocol import UNPROVEN_BYTES, Addr, Core, auth
+from sdfr.protocol.auth import Keyring
+from sdfr.records.model import Service, service_digest
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, services
 from sdfr.wire import Alive, Discovery, Origin, Response, Update
 

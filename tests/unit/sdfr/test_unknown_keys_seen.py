@@ -22,14 +22,16 @@ from typing import Any
 import pytest
 from aiohttp import ClientSession, UnixConnector
 
-from sdfr import auth, cli, keystore, wire
+from sdfr import cli, wire
 from sdfr.api import App, Runner, UnixSite, create_app
-from sdfr.auth import Keyring
-from sdfr.config import Config
+from sdfr.config import keystore
+from sdfr.config.keystore import StoredKeyring
+from sdfr.config.load import Config
 from sdfr.daemon.channel import CONTROL_SOCKET
 from sdfr.daemon.discovery import DiscoveryLayer
-from sdfr.keystore import StoredKeyring
-from sdfr.model import service_digest
+from sdfr.protocol import auth
+from sdfr.protocol.auth import Keyring
+from sdfr.records.model import service_digest
 from sdfr.store import Store
 from tests.support.api import aio, free_port
 from tests.support.logged import logged

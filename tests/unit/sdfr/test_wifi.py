@@ -17,11 +17,11 @@ from typing import Any
 
 import pytest
 
-from sdfr import wifi
 from sdfr.cli import main as sdfr
-from sdfr.config import Config, from_args, to_args
+from sdfr.config.load import Config, from_args, to_args
 from sdfr.daemon import supervisor
 from sdfr.errors import ConfigError, SdfrError
+from sdfr.host import wifi
 
 SECRET = "correct horse battery staple"
 

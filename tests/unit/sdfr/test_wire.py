@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from sdfr import __version__
 from sdfr.errors import ValidationError
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.wire import (
     DEFAULT_GROUP,
     DEVICE_TYPE,
@@ -340,7 +340,7 @@ def test_update_parts_of_100_services() -> None:
     assert min(sizes) >= 130 and max(sizes) <= 180
     datagrams = encode_update_parts(ORIGIN, LOCATION, 1800, svcs)
     assert 8 <= len(datagrams) <= 25
-    # Each leaves room for a seal (sdfr.auth), so a keyed fleet has the same limits.
+    # Each leaves room for a seal (sdfr.protocol.auth), so a keyed fleet has the same limits.
     assert all(len(d) <= MAX_ENCODED == MAX_DATAGRAM - SEAL_RESERVE for d in datagrams)
     updates = [decode(d) for d in datagrams]
     assert [s for u in updates for s in u.services] == svcs  # type: ignore[union-attr]

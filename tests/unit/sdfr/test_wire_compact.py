@@ -10,7 +10,7 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from sdfr.model import Service
+from sdfr.records.model import Service
 from sdfr.wire import (
     MAX_ENCODED,
     PACKED,

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sdfr.model import Service, service_digest
+from sdfr.records.model import Service, service_digest
 from sdfr.wire import (
     MAX_DATAGRAM,
     MAX_LOCATION,

@@ -14,7 +14,6 @@ from typing import Any
 from sdfr import wire
 from sdfr.endpoints import DEFAULT_API
 from sdfr.errors import ConfigError
-from sdfr.model import ROBOT_ID_RE
 from sdfr.protocol import (
     BEACON_INTERVAL,
     MISS_LIMIT,
@@ -22,6 +21,7 @@ from sdfr.protocol import (
     REPLY_DELAY_MAX,
     CoreConfig,
 )
+from sdfr.records.model import ROBOT_ID_RE
 
 DEFAULT_DESCRIBE = "iface:8701"
 #: The host of `describe` that means "the fleet interface's address, wherever it moves".
@@ -37,7 +37,7 @@ def default_state_dir() -> Path:
     return Path(base) / "sdfr"
 
 
-#: How an option's value is read from a flag or a TOML value (`sdfr.config`), by the type
+#: How an option's value is read from a flag or a TOML value (`sdfr.config.load`), by the type
 #: of its field (``| None`` aside).
 KINDS = {
     "str": "str",

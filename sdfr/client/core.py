@@ -1,7 +1,7 @@
 """The clients' core: sdfrd's REST API written once, without I/O, for both transports.
 
 `Api` holds every call of the API as a method (an `Op` made from the call's definition in
-`sdfr.calls`, whose signature and docstring are the method's). A transport (`sdfr.client`:
+`sdfr.client.calls`, whose signature and docstring are the method's). A transport (`sdfr.client`:
 http.client in threads; `sdfr.aio`: aiohttp in asyncio) only carries what a method makes:
 
 * a `Call`, sent by running a `Plan` (`attempts`: sent again while sdfrd cannot be reached,
@@ -32,8 +32,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Generic, ParamSpec, TypeVar, overload
 
-from sdfr import calls
-from sdfr.calls import (
+from sdfr.client import calls
+from sdfr.client.calls import (
     RENEW_EVERY,
     RETRY_DELAYS,
     STREAM_HEADERS,
@@ -49,7 +49,7 @@ from sdfr.calls import (
 )
 from sdfr.endpoints import DEFAULT_API
 from sdfr.errors import ApiError
-from sdfr.model import AttrValue
+from sdfr.records.model import AttrValue
 
 P = ParamSpec("P")
 T = TypeVar("T")

@@ -1,5 +1,6 @@
 """Daemon configuration read: defaults, TOML file and command-line flags into one validated
-`Config` (its fields, the options, are in `sdfr.options`), and the flags that give it back."""
+`Config` (its fields, the options, are in `sdfr.config.options`), and the flags that give it
+back."""
 
 from __future__ import annotations
 
@@ -10,10 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sdfr import version_text
-from sdfr.endpoints import DEFAULT_API
-from sdfr.errors import ConfigError
-from sdfr.hints import did_you_mean
-from sdfr.options import (
+from sdfr.config.options import (
     AUTH_MODES,
     DEFAULT_DESCRIBE,
     IFACE_HOST,
@@ -30,9 +28,12 @@ from sdfr.options import (
     option_help,
     split_hostport,
 )
-from sdfr.options import (
+from sdfr.config.options import (
     kind as option_kind,
 )
+from sdfr.endpoints import DEFAULT_API
+from sdfr.errors import ConfigError
+from sdfr.hints import did_you_mean
 
 if TYPE_CHECKING:
     import argparse

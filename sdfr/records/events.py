@@ -15,7 +15,7 @@ import json
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
-from sdfr.model import PeerRecord, Service
+from sdfr.records.model import PeerRecord, Service
 
 #: Every kind of event, and what it means (the OpenAPI document and docs/api.md list these).
 KINDS: dict[str, str] = {

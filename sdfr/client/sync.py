@@ -13,8 +13,8 @@ One keep-alive connection per client (TCP, or the daemon's unix socket
 STATE_DIR/api.sock); not safe to share between threads. A client is one program to sdfrd:
 what it publishes belongs to its owner token (`owner_token`, made for it unless given;
 keep it to unpublish after a restart of the program), sent with every call.
-`sdfr.aio.AsyncClient` has the same methods for asyncio: both are `sdfr.clientcore.Api`
-(every call written once, in `sdfr.calls`), carried over their transport.
+`sdfr.aio.AsyncClient` has the same methods for asyncio: both are `sdfr.client.core.Api`
+(every call written once, in `sdfr.client.calls`), carried over their transport.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
-from sdfr import calls
-from sdfr.calls import (
+from sdfr.client import calls
+from sdfr.client.calls import (
     RETRY_DELAYS,
     STREAM_IDLE,
     Call,
@@ -43,7 +43,7 @@ from sdfr.calls import (
     service_path,
     split_api,
 )
-from sdfr.clientcore import Api, Lease, LeaseKeeping, Plan, Stepper, SyncTransport, Watch, attempts
+from sdfr.client.core import Api, Lease, LeaseKeeping, Plan, Stepper, SyncTransport, Watch, attempts
 from sdfr.errors import ApiError
 
 T = TypeVar("T")
@@ -134,7 +134,7 @@ def _reason(exc: BaseException) -> str:
 
 class Client(Api, SyncTransport["KeptLease"]):
     """sdfrd's REST API; every method raises ApiError (status 0: the daemon was not reached).
-    The methods are `sdfr.clientcore.Api`'s; this carries them over http.client."""
+    The methods are `sdfr.client.core.Api`'s; this carries them over http.client."""
 
     _conn: http.client.HTTPConnection | None = None
 
@@ -212,7 +212,7 @@ class Client(Api, SyncTransport["KeptLease"]):
         return run.result
 
     def call(self, call: Call[T]) -> T:
-        """Carry out one call of `sdfr.calls`; sent again after RETRY_DELAYS when it may be
+        """Carry out one call of `sdfr.client.calls`; sent again after RETRY_DELAYS when it may be
         and sdfrd could not be reached."""
         return self._run(attempts(call, self.retry_delays))
 

@@ -38,11 +38,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sdfr.config import WIFI_SECRET_MIN, Config
+from sdfr.config.keystore import KeySource
+from sdfr.config.load import WIFI_SECRET_MIN, Config
 from sdfr.errors import ConfigError, SdfrError
-from sdfr.keystore import KeySource
 
-log = logging.getLogger("sdfr.wifi")
+log = logging.getLogger("sdfr.host.wifi")
 
 SSID_PREFIX = "sdfr-fleet-"
 KDF_ITERATIONS = 100_000

@@ -2,8 +2,8 @@
 
 Each API call is a function that returns a `Call`: the method, the path, the JSON body, the
 error statuses whose body is an answer, whether it may be sent again when sdfrd could not be
-reached, and how its answer becomes the result (a record of `sdfr.schema` as a JSON object).
-Each is a method of both clients (`sdfr.clientcore.Api`), with its signature and docstring;
+reached, and how its answer becomes the result (a record of `sdfr.records.schema` as a JSON object).
+Each is a method of both clients (`sdfr.client.core.Api`), with its signature and docstring;
 the clients only carry calls over their transport (`http.client` in threads, aiohttp in
 asyncio), and both read answers, errors and Server-Sent Events with the functions here.
 No I/O here.
@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 from typing import Annotated, Any, Generic, ParamSpec, TypedDict, TypeVar, cast
 from urllib.parse import quote, urlencode
 
-from sdfr import schema
 from sdfr.endpoints import DEFAULT_API
 from sdfr.endpoints import OWNER_HEADER as OWNER_HEADER  # (where `sdfr.cli` takes it)
 from sdfr.errors import ApiError
-from sdfr.model import AttrValue, attr_text
+from sdfr.records import schema
+from sdfr.records.model import AttrValue, attr_text
 
 T = TypeVar("T")
 P = ParamSpec("P")
@@ -40,7 +40,7 @@ STREAM_IDLE = 45.0
 
 
 # -- the answers, typed ------------------------------------------------------------------------
-# Answers are the records of `sdfr.schema` as decoded JSON objects: each is typed as a dict
+# Answers are the records of `sdfr.records.schema` as decoded JSON objects: each is typed as a dict
 # annotated with the record it keeps to.
 
 ServiceJson = Annotated[JsonObject, schema.ServiceOutput]
@@ -260,7 +260,7 @@ def self_info() -> Call[SelfJson]:
 
 
 def health() -> Call[HealthJson]:
-    """The daemon's health (`sdfr.schema.Health`), also when it answers 503: `status` is
+    """The daemon's health (`sdfr.records.schema.Health`), also when it answers 503: `status` is
     "ok", "warning" (up, with `warnings`) or "degraded" (HTTP 503: the discovery layer is
     down, starting or failing, or the state directory cannot be written); `discovery` is
     "up", "starting", "failing" or "down"; `state` is "ok", "full", "read-only" or "error"."""

@@ -1,7 +1,7 @@
 """Fleet keys on disk: key files, and the keyring a robot keeps in its state directory.
 
-The pure keyring (which keys, which one signs, the mode) is `sdfr.auth.Keyring`; this module
-reads and writes it.  A *key file* holds one key and is what an operator copies to robots
+The pure keyring (which keys, which one signs, the mode) is `sdfr.protocol.auth.Keyring`; this
+module reads and writes it.  A *key file* holds one key and is what an operator copies to robots
 (`sdfr keys generate FILE`); the *keyring* (STATE_DIR/keyring.json, mode 0600) is what a
 running daemon uses.  `key_file` seeds the keyring on the first start only: afterwards the
 keyring is authoritative, since a rotation (`sdfr keys install/use/remove`) changes it live
@@ -25,10 +25,10 @@ from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
-from sdfr.auth import KEY_BYTES, MODES, OPEN, Keyring, Mode, key_id
 from sdfr.errors import ConfigError, SdfrError
+from sdfr.protocol.auth import KEY_BYTES, MODES, OPEN, Keyring, Mode, key_id
 
-log = logging.getLogger("sdfr.keystore")
+log = logging.getLogger("sdfr.config.keystore")
 
 KEYRING_NAME = "keyring.json"
 FORMAT_VERSION = 1

@@ -2,7 +2,7 @@
 
 The server builds and validates its bodies with them and generates the OpenAPI document's
 schemas from them (`sdfr.api.models`); the clients' answers are these records as JSON
-objects (`sdfr.calls`), and the ROS bridge decodes its answers into them. Nothing of the
+objects (`sdfr.client.calls`), and the ROS bridge decodes its answers into them. Nothing of the
 daemon is imported here: the clients load this without the wire codec or the protocol.
 """
 
@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 
 from msgspec import Meta, Struct
 
-from sdfr.model import ServiceInput, ServiceOutput
+from sdfr.records.model import ServiceInput, ServiceOutput
 
 #: A JSON object as decoded from an answer.
 JsonObject = dict[str, Any]
@@ -127,7 +127,7 @@ class Neighbors(Struct):
 
 
 class PeerJson(Struct):
-    """A robot of the history map (`sdfr.model.PeerRecord` as the API shows it)."""
+    """A robot of the history map (`sdfr.records.model.PeerRecord` as the API shows it)."""
 
     robot_id: str
     address: str
