@@ -1,7 +1,7 @@
 """The netem tier: netlab's link shaping through the kernel's sch_netem, measured for real.
 
 This machine's kernel has no sch_netem, so here these tests skip (saying why);
-`make test-netem` (scripts/vm-netem.sh) boots a Debian kernel under virtme-ng
+`make test-netem` (scripts/vm.sh netem) boots a Debian kernel under virtme-ng
 and runs them inside it. On a kernel that has netem they run directly, as root.
 
 What to expect follows from how `Lab.shape` realises a shape (netlab/shaping.py):

@@ -1,4 +1,4 @@
-"""The netem tier keeps a failed test's lab folders (tests/netem/keep.py): daemon logs and
+"""A VM tier keeps a failed test's lab folders (tests/support/vmkeep.py): daemon logs and
 state copied out of the VM, sockets left behind, and the failure says where."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.netem.keep import (
+from tests.support.vmkeep import (
     GUEST_ENV,
     KEEP_ENV,
     check_guest_folders,
@@ -82,13 +82,13 @@ def test_without_keep_logs_a_failure_names_pytests_own_folder(
 
 
 # A guest's mount table as virtme-ng makes it: / from the host (9p), /tmp an overlay whose
-# lower layer is the host's /tmp, /run a tmpfs, and the tmpfs vm-netem.sh mounts for the tests.
+# lower layer is the host's /tmp, /run a tmpfs, and the tmpfs vm.sh mounts for the tests.
 MOUNTINFO = """\
 22 1 0:20 / / ro,relatime - 9p /dev/root ro,access=any,trans=virtio
 30 22 0:26 / /run rw,relatime - tmpfs run rw,mode=755
 41 22 0:35 / /tmp rw,relatime - overlay virtme_rw_overlay7 rw,lowerdir=/tmp,upperdir=/run/tmp
 44 41 0:38 / /tmp/sdfr-vm-netem.abc rw,relatime - 9p rwdir1 rw,access=any
-52 30 0:41 / /run/sdfr-netem rw,relatime - tmpfs sdfr-netem rw,mode=700
+52 30 0:41 / /run/sdfr-vm rw,relatime - tmpfs sdfr-vm rw,mode=700
 53 22 0:42 / /srv/a\\040b rw,relatime - tmpfs x rw
 """
 
@@ -100,7 +100,7 @@ MOUNTINFO = """\
         ("/tmp", "overlay"),
         ("/tmp/sdfr-vm-netem.abc/junit.xml", "9p"),
         ("/tmp/sdfr-vm-netem.abcd", "overlay"),  # (not under the 9p mount: a longer name)
-        ("/run/sdfr-netem/pytest/netem-fleet0", "tmpfs"),
+        ("/run/sdfr-vm/pytest/netem-fleet0", "tmpfs"),
         ("/run/tmp", "tmpfs"),
         ("/srv/a b/c", "tmpfs"),
         ("/work/main", "9p"),
@@ -114,7 +114,7 @@ def test_in_the_guest_the_tests_folders_must_not_be_on_the_hosts_overlay(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     overlay = Path("/tmp/pytest-of-root/pytest-306")
-    own = Path("/run/sdfr-netem/pytest")
+    own = Path("/run/sdfr-vm/pytest")
     monkeypatch.delenv(GUEST_ENV, raising=False)
     assert check_guest_folders(overlay, MOUNTINFO) is None  # (not in the VM: wherever it is)
     monkeypatch.setenv(GUEST_ENV, "1")

@@ -1,25 +1,29 @@
 #!/usr/bin/env bash
-# The VM tier: run tests/netem inside a Debian kernel that has sch_netem.
+# The VM tiers: tests that need kernel modules this machine's kernel lacks, run inside a
+# Debian kernel that has them.
 #
-#   scripts/vm-netem.sh [PYTEST ARGS...]     (default: -v -s tests/netem)
+#   scripts/vm.sh netem [PYTEST ARGS...]   sch_netem: link shaping (default: -v -s tests/netem)
+#   scripts/vm.sh radio [PYTEST ARGS...]   mac80211_hwsim: 802.11 radios (default: -v -s tests/radio)
 #
-# This machine's kernel has no netem (see ../shared/ENVIRONMENT.md), so the
+# This machine's kernel has no modules at all (see ../shared/ENVIRONMENT.md), so the
 # newest /boot/vmlinuz-*-amd64 is booted with virtme-ng under QEMU: the guest
 # sees the host's filesystem read-only (with a writable overlay on /tmp, /etc,
-# /var...), so the project's .venv runs there as it is. Results come back
-# through a --rwdir: pytest's output, its JUnit XML and its exit status, which
-# becomes this script's. Every test must run: a skip inside the VM fails the tier.
+# /var...), so the project's .venv and the host's iw and wpa_supplicant run there as they
+# are. Results come back through a --rwdir: pytest's output, its JUnit XML and its exit
+# status, which becomes this script's. Every test must run: a skip inside the VM fails the
+# tier.
 #
 # Environment:
-#   SDFR_SKIP_VM=1        skip the tier (says so; exit 0)
+#   SDFR_SKIP_VM=1        skip every VM tier (says so; exit 0)
+#   SDFR_SKIP_NETEM=1     skip the netem tier; SDFR_SKIP_RADIO=1 the radio tier
 #   SDFR_VM_TIMEOUT=900   seconds before the VM is killed and the tier fails
 #   SDFR_VM_KERNEL=PATH   the kernel image to boot (default: newest Debian amd64)
 #   SDFR_VM_KVM=1         use KVM (default off: it hangs on the CI machines)
 #   SDFR_KEEP_LOGS=DIR    where a failed test's lab folders go (default: $TMPDIR or /tmp)
 #
 # A failed test's lab folders (every robot's sdfrd.log and state, the pcaps) are copied out
-# of the guest as the test fails (tests/netem/keep.py), into a new folder
-# sdfr-vm-netem-logs.XXXXXX under SDFR_KEEP_LOGS that the guest may write; the failure and
+# of the guest as the test fails (tests/support/vmkeep.py), into a new folder
+# sdfr-vm-TIER-logs.XXXXXX under SDFR_KEEP_LOGS that the guest may write; the failure and
 # this script's last lines say where. No test failed: the folder is removed.
 #
 # No leftovers: the VM runs in a process group of its own (timeout's), which is
@@ -28,12 +32,35 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$(pwd)
 
+tier=${1:-}
+case "$tier" in
+netem)
+    skip_var=SDFR_SKIP_NETEM
+    modules='modprobe sch_netem'
+    ;;
+radio)
+    skip_var=SDFR_SKIP_RADIO
+    # No radio at load: each lab makes its own over generic netlink (netlab/hwsim.py).
+    modules='modprobe mac80211_hwsim radios=0'
+    ;;
+*)
+    echo "vm: usage: scripts/vm.sh netem|radio [PYTEST ARGS...] (got ${tier:-nothing})" >&2
+    exit 2
+    ;;
+esac
+shift
+me="vm-$tier"
+
 if [ "${SDFR_SKIP_VM:-0}" = 1 ]; then
-    echo "vm-netem: SKIPPED (SDFR_SKIP_VM=1): the netem tier did not run"
+    echo "$me: SKIPPED (SDFR_SKIP_VM=1): the $tier tier did not run"
+    exit 0
+fi
+if [ "${!skip_var:-0}" = 1 ]; then
+    echo "$me: SKIPPED ($skip_var=1): the $tier tier did not run"
     exit 0
 fi
 
-bash scripts/bootstrap-vm.sh
+bash scripts/bootstrap-vm.sh "$tier"
 export PATH="$repo/.venv/vm/bin:$PATH" # vng runs virtme-run from PATH
 
 kernel=${SDFR_VM_KERNEL:-}
@@ -42,22 +69,22 @@ if [ -z "$kernel" ]; then
 fi
 kver=${kernel#/boot/vmlinuz-}
 [ -r "$kernel" ] || {
-    echo "vm-netem: FAILED: no kernel image $kernel" >&2
+    echo "$me: FAILED: no kernel image $kernel" >&2
     exit 1
 }
 [ -d "/lib/modules/$kver" ] || {
-    echo "vm-netem: FAILED: no modules for $kver in /lib/modules" >&2
+    echo "$me: FAILED: no modules for $kver in /lib/modules" >&2
     exit 1
 }
 
 limit=${SDFR_VM_TIMEOUT:-900}
 pytest_args=("$@")
-[ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s tests/netem)
+[ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s "tests/$tier")
 
-res=$(mktemp -d -t sdfr-vm-netem.XXXXXX)
+res=$(mktemp -d -t sdfr-$me.XXXXXX)
 keep_root=${SDFR_KEEP_LOGS:-${TMPDIR:-/tmp}}
 mkdir -p "$keep_root"
-keep=$(mktemp -d "$keep_root/sdfr-vm-netem-logs.XXXXXX")
+keep=$(mktemp -d "$keep_root/sdfr-$me-logs.XXXXXX")
 keep=$(cd "$keep" && pwd -P) # the same path in the guest: absolute, no links
 vm_pgid="" # timeout's pid, and the id of the process group of the whole VM
 vm_reaped=""
@@ -87,15 +114,15 @@ cleanup() {
     fi
     rm -rf "$res"
     if [ -n "$(ls -A "$keep" 2>/dev/null)" ]; then
-        echo "vm-netem: the failed tests' lab folders (daemon logs, state, pcaps) are kept" \
+        echo "$me: the failed tests' lab folders (daemon logs, state, pcaps) are kept" \
             "in $keep" >&2
     else
         rmdir "$keep" 2>/dev/null || true
     fi
 }
 trap cleanup EXIT
-trap 'echo "vm-netem: interrupted, stopping the VM" >&2; exit 130' INT
-trap 'echo "vm-netem: terminated, stopping the VM" >&2; exit 143' TERM
+trap 'echo "$me: interrupted, stopping the VM" >&2; exit 130' INT
+trap 'echo "$me: terminated, stopping the VM" >&2; exit 143' TERM
 
 # What runs inside the guest (as root, cwd the repository); its $ expand there.
 # shellcheck disable=SC2016
@@ -104,19 +131,19 @@ trap 'echo "vm-netem: terminated, stopping the VM" >&2; exit 143' TERM
     printf 'res=%q\n' "$res"
     printf 'cd %q\n' "$repo"
     echo 'echo "vm: up after $(cut -d" " -f1 /proc/uptime)s: kernel $(uname -r), $(nproc) cpu"'
-    echo 'if ! modprobe sch_netem; then touch "$res/no-netem"; exit 0; fi'
+    printf 'if ! %s; then touch "$res/no-module"; exit 0; fi\n' "$modules"
     echo 'export PYTHONDONTWRITEBYTECODE=1 # the repository is read-only in the guest'
     printf 'export SDFR_KEEP_LOGS=%q # a failed test copies its lab folders there\n' "$keep"
     # The guest's /tmp is an overlay whose lower layer is the host's /tmp, live: pytest there
     # numbers its folder after the host's pytest-of-root/pytest-N and sweeps old ones, while the
     # host's runs make and delete theirs underneath (undefined for an overlay). The tests' folders
     # (the labs, their daemons' sockets and state) go on a tmpfs of the guest's own instead.
-    echo 'mkdir -p /run/sdfr-netem && mount -t tmpfs -o mode=0700 sdfr-netem /run/sdfr-netem ||'
-    echo '    { echo "vm: cannot mount a tmpfs on /run/sdfr-netem for the tests folders" >&2; exit 1; }'
-    echo 'export TMPDIR=/run/sdfr-netem SDFR_VM_GUEST=1'
+    echo 'mkdir -p /run/sdfr-vm && mount -t tmpfs -o mode=0700 sdfr-vm /run/sdfr-vm ||'
+    echo '    { echo "vm: cannot mount a tmpfs on /run/sdfr-vm for the tests folders" >&2; exit 1; }'
+    echo 'export TMPDIR=/run/sdfr-vm SDFR_VM_GUEST=1'
     # Not the hypothesis plugin: these tests do not use it, and importing it is a good part
     # of pytest's start-up under emulation.
-    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest --basetemp=/run/sdfr-netem/pytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
+    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest --basetemp=/run/sdfr-vm/pytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
         "$(printf '%q ' "${pytest_args[@]}")"
     echo 'echo "${PIPESTATUS[0]}" >"$res/rc"'
     echo 'echo "vm: pytest done after $(cut -d" " -f1 /proc/uptime)s of uptime"'
@@ -128,7 +155,7 @@ vng_args=(--run "$kernel" --user root --cpus 1 --memory 1G --rwdir "$res" --rwdi
     --cwd "$repo")
 [ "${SDFR_VM_KVM:-0}" = 1 ] || vng_args+=(--disable-kvm)
 
-echo "vm-netem: booting $kver under QEMU$([ "${SDFR_VM_KVM:-0}" = 1 ] || echo ' (software emulation)'), limit ${limit}s"
+echo "$me: booting $kver under QEMU$([ "${SDFR_VM_KVM:-0}" = 1 ] || echo ' (software emulation)'), limit ${limit}s"
 start=$SECONDS
 # timeout puts itself and the VM in a new process group, killed as a whole on expiry.
 # vng's own temporary files go under $res too (TMPDIR), so they go with it.
@@ -147,15 +174,15 @@ tail_pid=""
 elapsed=$((SECONDS - start))
 
 if [ "$vm_status" = 124 ] || [ "$vm_status" = 137 ]; then
-    echo "vm-netem: FAILED: the VM ran over ${limit}s and was killed (SDFR_VM_TIMEOUT)" >&2
+    echo "$me: FAILED: the VM ran over ${limit}s and was killed (SDFR_VM_TIMEOUT)" >&2
     exit 1
 fi
-if [ -e "$res/no-netem" ]; then
-    echo "vm-netem: FAILED: \`modprobe sch_netem\` failed in the guest ($kver)" >&2
+if [ -e "$res/no-module" ]; then
+    echo "$me: FAILED: \`$modules\` failed in the guest ($kver)" >&2
     exit 1
 fi
 if [ ! -s "$res/rc" ]; then
-    echo "vm-netem: FAILED: the VM (vng exit $vm_status, ${elapsed}s) reported no test result;" \
+    echo "$me: FAILED: the VM (vng exit $vm_status, ${elapsed}s) reported no test result;" \
         "its output is above" >&2
     exit 1
 fi
@@ -173,14 +200,14 @@ print(n["tests"], n["failures"], n["errors"], n["skipped"], suite.get("time", "?
 EOF
 ) || summary=""
 read -r tests failures errors skipped ptime <<<"${summary:-0 0 0 0 ?}"
-echo "vm-netem: $tests tests in the VM: $((tests - failures - errors - skipped)) passed," \
+echo "$me: $tests tests in the VM: $((tests - failures - errors - skipped)) passed," \
     "$failures failed, $errors errors, $skipped skipped (pytest ${ptime}s, VM ${elapsed}s in all)"
 if [ "$rc" != 0 ]; then
-    echo "vm-netem: FAILED: pytest exited $rc in the VM" >&2
+    echo "$me: FAILED: pytest exited $rc in the VM" >&2
     exit "$rc"
 fi
 if [ "$tests" = 0 ] || [ "$skipped" != 0 ]; then
-    echo "vm-netem: FAILED: tests were skipped or none ran in the VM, where netem must work" >&2
+    echo "$me: FAILED: tests were skipped or none ran in the VM, where the $tier tier must work" >&2
     exit 1
 fi
-echo "vm-netem: passed"
+echo "$me: passed"

@@ -1,12 +1,12 @@
-"""Where the netem tier's folders are, and keeping them when a test fails.
+"""Where a VM tier's folders are, and keeping them when a test fails.
 
 In the VM the tests' folders (the labs: their daemons' logs, sockets and state) must be on a
 filesystem of the guest's own: its /tmp is an overlay of the host's /tmp, which the host
-changes underneath (`check_guest_folders`; scripts/vm-netem.sh mounts a tmpfs for them).
+changes underneath (`check_guest_folders`; scripts/vm.sh mounts a tmpfs for them).
 
 Those folders end with the VM. When a test fails, `keep_tree` copies the session's
 temporary folders -- every lab's robots' `sdfrd.log`, `state/` and the pcaps -- into
-$SDFR_KEEP_LOGS, a folder `scripts/vm-netem.sh` shares with the guest (`--rwdir`), so they
+$SDFR_KEEP_LOGS, a folder `scripts/vm.sh` shares with the guest (`--rwdir`), so they
 are on the host after the VM is gone, even if it is killed later on. Sockets, pipes and
 devices are not copied: they mean nothing once their process is gone.
 """
@@ -19,9 +19,9 @@ import shutil
 import stat
 from pathlib import Path
 
-#: The folder a failed test's lab folders are copied into (set by scripts/vm-netem.sh).
+#: The folder a failed test's lab folders are copied into (set by scripts/vm.sh).
 KEEP_ENV = "SDFR_KEEP_LOGS"
-#: Set by scripts/vm-netem.sh in the guest, whose tests' folders must be on its own tmpfs.
+#: Set by scripts/vm.sh in the guest, whose tests' folders must be on its own tmpfs.
 GUEST_ENV = "SDFR_VM_GUEST"
 
 
@@ -60,7 +60,7 @@ def check_guest_folders(basetemp: Path, mountinfo: str | None = None) -> str | N
     if kind == "overlay":
         return (
             f"the tests' folders ({basetemp}) are on an overlay of the host's filesystem, "
-            "which the host changes underneath; scripts/vm-netem.sh gives them a tmpfs "
+            "which the host changes underneath; scripts/vm.sh gives them a tmpfs "
             "(pytest --basetemp) of the guest's own"
         )
     return None
