@@ -38,6 +38,7 @@ from sdfr.store import StateWriteError, Store
 
 if TYPE_CHECKING:
     from sdfr.daemon.autoaddr import AutoAddress
+    from sdfr.host.wifiwatch import Watch
 
 log = logging.getLogger("sdfrd.discovery")
 
@@ -118,6 +119,14 @@ class DiscoveryLayer:
         self._timer: asyncio.TimerHandle | None = None
         self._flush_pending = False
         self._stopping = asyncio.Event()
+        #: The fleet's WiFi, when sdfrd joined it: who refuses our key (imported only then).
+        self.wifi: Watch | None = None
+        self.wifi_state: status.Wifi | None = None
+        self._wifi_next = 0.0
+        if cfg.wifi != "off" and (cfg.wifi_secret or cfg.wifi_secret_file):
+            from sdfr.host import wifiwatch
+
+            self.wifi = wifiwatch.watch_for(cfg)
 
     # -- setup -----------------------------------------------------------------------------
 
@@ -198,6 +207,8 @@ class DiscoveryLayer:
             tick += 1
             self._guard("periodic duties", self._check_address)
             self._guard("logging the fleet", lambda: self.fleet_log.tick(time.monotonic()))
+            if self.wifi is not None:
+                self._guard("watching the WiFi", self._watch_wifi)
             if tick % SLOW_TICKS == 0:
                 self._guard("reloading the services", self._reload_services)
                 self._guard("reloading the keyring", self._reload_keyring)
@@ -205,6 +216,19 @@ class DiscoveryLayer:
                 self._guard("writing the status", self._write_status)
             if self.core.has_dirty:
                 self._guard("saving the history map", self._save)
+
+    def _watch_wifi(self) -> None:
+        from sdfr.host import wifiwatch
+
+        now = time.monotonic()
+        if self.wifi is None or now < self._wifi_next:
+            return
+        self.wifi_state, lines = self.wifi.observe(now, wifiwatch.station_dump(self.wifi.iface))
+        early = time.time() - self.started < wifiwatch.FIRST_MINUTE
+        soon = early or self.wifi.pending
+        self._wifi_next = now + (wifiwatch.FIRST_PERIOD if soon else wifiwatch.PERIOD)
+        for line in lines:
+            log.warning("%s", line)
 
     def _status_signature(self) -> tuple[object, ...]:
         """What changes the status record besides its heartbeat and counters, cheaply."""
@@ -224,6 +248,8 @@ class DiscoveryLayer:
             self.describe.where,
             self._keyring_stamp,
             self.unknown_keys.kids(time.monotonic()),
+            None if self.wifi_state is None else self.wifi_state.authorized,
+            None if self.wifi_state is None else [s.mac for s in self.wifi_state.refused],
         )
 
     def _guard(self, what: str, duty: Callable[[], None]) -> None:
@@ -477,6 +503,7 @@ class DiscoveryLayer:
             # A persistent error is not a crash, but as bad: the fleet cannot see our services.
             errors=self.failures.status(core.announce_error),
             state=reporting.state_dir(self.out.problem),
+            wifi=self.wifi_state,
         )
 
 

@@ -115,6 +115,30 @@ class StateDir:
 
 
 @dataclass(frozen=True, slots=True)
+class WifiStation:
+    """A station of the fleet's WiFi that has not completed the key handshake with us."""
+
+    mac: str
+    seconds: float  # unauthorized this long
+
+
+@dataclass(frozen=True, slots=True)
+class Wifi:
+    """The fleet's WiFi as this robot's radio sees it, when sdfrd joined it
+    (`sdfr.host.wifiwatch`)."""
+
+    iface: str
+    ssid: str
+    mode: str
+    #: stations that completed the key handshake with this robot
+    authorized: int = 0
+    #: stations unauthorized for longer than the watch's grace
+    refused: tuple[WifiStation, ...] = ()
+    #: what an operator should do about `refused` (a /health warning), or None
+    warning: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class DiscoveryStatus:
     pid: int
     heartbeat: float
@@ -141,6 +165,7 @@ class DiscoveryStatus:
     robot_id_conflict: Conflict | None = None
     errors: Errors = field(default_factory=Errors)
     state: StateDir = field(default_factory=StateDir)
+    wifi: Wifi | None = None
     format: int = FORMAT
 
     def to_json(self) -> dict[str, object]:

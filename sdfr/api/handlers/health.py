@@ -76,6 +76,8 @@ def health_warnings(status: DiscoveryStatus, now: float | None = None) -> list[s
             f"{seen.count} datagrams from {seen.address}, the last {ago:.0f} s ago (a robot left "
             "out of a key rotation?); give it the fleet's key, or `sdfr keys install` its key"
         )
+    if status.wifi is not None and status.wifi.warning:
+        out.append(status.wifi.warning)
     mode = status.auth.mode
     if mode in ("accept", "sign"):
         out.append(

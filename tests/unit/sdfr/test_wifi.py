@@ -82,6 +82,7 @@ def test_ibss_supplicant_config(tmp_path: Path) -> None:
     assert [x.strip() for x in net] == [
         'ssid="sdfr-fleet-7"',
         "mode=1",
+        f"bssid={wifi.bssid_for(7)}",  # one cell for the whole fleet
         "frequency=2437",
         "proto=RSN",
         "key_mgmt=WPA-PSK",
@@ -223,6 +224,21 @@ def test_apply_stops_at_the_failing_command_and_says_what_to_check(tmp_path: Pat
     assert [c[0] for c in runner.calls] == ["ip", "iw"]
     with pytest.raises(SdfrError, match=r"wpa_supplicant -B .* failed.*other wpa_supplicant"):
         wifi.apply(p, FakeRunner(fail="wpa_supplicant"))
+
+
+def test_a_failure_shows_what_the_tool_said_not_its_tear_down() -> None:
+    """wpa_supplicant ends a failed start with its tear-down lines: the cause is before them."""
+    out = (
+        "Successfully initialized wpa_supplicant\n"
+        "Failed to initialize control interface '/run/wpa_supplicant'.\n"
+        "You may have another wpa_supplicant process already running\n"
+        "nl80211: deinit ifname=wlan0 disabled_11b_rates=0\n"
+    )
+    assert wifi.said(out, "") == (
+        ": Failed to initialize control interface '/run/wpa_supplicant'. / You may have "
+        "another wpa_supplicant process already running"
+    )
+    assert wifi.said("", "") == "" and wifi.said(None, "a\nb\nc\nd\ne") == ": b / c / d / e"
 
 
 def test_apply_names_the_missing_package(tmp_path: Path) -> None:
@@ -402,3 +418,13 @@ def test_local_actions_refuse_options_that_name_a_daemon(
     assert "--config" in err
     assert sdfr(["example", "robot.toml", *where]) == 2
     assert f"example does not talk to sdfrd: {where[0]}" in capsys.readouterr().err
+
+
+def test_an_ibss_fleet_has_one_fixed_cell() -> None:
+    """Robots that start at once join one cell (fixed BSSID), not one each."""
+    bssid = wifi.bssid_for(7)
+    first = int(bssid[:2], 16)
+    assert first & 0x02 and not first & 0x01  # locally administered, unicast
+    assert bssid == wifi.bssid_for(7) != wifi.bssid_for(8)
+    text = wifi.supplicant_config("ibss", "sdfr-fleet-7", 2412, "00" * 32, bssid=bssid)
+    assert f"\tbssid={bssid}" in text
