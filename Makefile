@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-py310 test-netem check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper bench-footprint bench-scale netlab image compose-up compose-down clean distclean
+.PHONY: venv test test-py310 test-netem test-radio check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper bench-footprint bench-scale netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -21,6 +21,7 @@ test: $(STAMP)
 	$(BIN)/pytest -q tests/
 	$(MAKE) --no-print-directory test-py310
 	$(MAKE) --no-print-directory test-netem
+	$(MAKE) --no-print-directory test-radio
 
 # The Python 3.10 tier (Ubuntu 22.04 / ROS 2 Humble / Jetson): the unit tests and fleet tests
 # under 3.10 in .venv310. Fails if no 3.10 can be had; SDFR_SKIP_PY310=1 skips it, saying so.
@@ -30,7 +31,12 @@ test-py310: $(STAMP)
 # The netem tier: tests/netem in a Debian kernel under virtme-ng (this kernel has no
 # sch_netem). Fails if the VM cannot run; SDFR_SKIP_VM=1 skips it, saying so.
 test-netem: $(STAMP)
-	bash scripts/vm-netem.sh
+	bash scripts/vm.sh netem
+
+# The radio tier: tests/radio in the same kind of VM, with mac80211_hwsim: robots on 802.11
+# radios, each sdfrd joining the fleet's WiFi itself. SDFR_SKIP_RADIO=1 skips it, saying so.
+test-radio: $(STAMP)
+	bash scripts/vm.sh radio
 
 check: $(STAMP)
 	$(BIN)/ruff check $(LINT_PATHS)

@@ -10,10 +10,12 @@ both remove the same things the same way:
 2. its containers (robots of the docker runtime) are removed: those the
    manifest records and any labelled with the lab's name;
 3. anything still running inside the lab's namespaces is ours by
-   definition and is killed by pid;
-4. the namespaces are deleted, recorded ones and any named ``nl-<lab>-*``;
+   definition and is killed by pid (a radio robot's wpa_supplicant too);
+4. its radios (a radio lab's) are brought back from the robots' namespaces and removed,
+   and any left in the initial namespace named like the lab's namespaces;
+5. the namespaces are deleted, recorded ones and any named ``nl-<lab>-*``;
    the bridge, veths, nft table and qdiscs go with them;
-5. a workdir the lab made itself is removed (unless `keep_workdir`: `netlab down`
+6. a workdir the lab made itself is removed (unless `keep_workdir`: `netlab down`
    keeps the daemons' logs and state unless asked), then the manifest; the last
    lab to go puts back the host's ARP table limits (`netlab.hostlimits`).
 
@@ -31,8 +33,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from netlab import docker, hostlimits, kernel, manifest, naming
-from netlab.errors import KernelError
+from netlab import docker, hostlimits, hwsim, kernel, manifest, naming
+from netlab.errors import KernelError, NetlabError
 from netlab.manifest import Manifest, ProcRecord
 from sdfr.host import procfs
 
@@ -121,6 +123,7 @@ class SweepResult:
     processes: list[int] = field(default_factory=list)
     namespaces: list[str] = field(default_factory=list)
     containers: list[str] = field(default_factory=list)
+    radios: list[str] = field(default_factory=list)
     workdir: str | None = None  # the workdir removed
     kept: str | None = None  # the workdir left in place (`keep_workdir`, or not the lab's own)
     manifest: bool = False
@@ -128,8 +131,32 @@ class SweepResult:
     @property
     def empty(self) -> bool:
         return not (
-            self.processes or self.namespaces or self.containers or self.workdir or self.manifest
+            self.processes
+            or self.namespaces
+            or self.containers
+            or self.radios
+            or self.workdir
+            or self.manifest
         )
+
+
+def remove_radios(name: str, record: Manifest | None, namespaces: Iterable[str]) -> list[str]:
+    """Remove the lab's radios: the recorded ones (brought back from their robots'
+    namespaces first) and any in this namespace named with the lab's prefix.  hwsim is not
+    asked when it is not loaded and the manifest records no radio (a wired lab)."""
+    recorded = {r.radio: r.ns for r in record.robots.values() if r.radio} if record else {}
+    if not recorded and not hwsim.loaded():
+        return []
+    live = set(namespaces)
+    removed: list[str] = []
+    with hwsim.Hwsim() as hw:
+        for radio, ns in recorded.items():
+            if hwsim.release(hw, radio, ns if ns in live else None):
+                removed.append(radio)
+        for left in hw.radios():
+            if left.name.startswith(naming.prefix(name)) and hw.remove_radio(left.name):
+                removed.append(left.name)
+    return removed
 
 
 def remove_containers(name: str, record: Manifest | None) -> list[str]:
@@ -190,6 +217,10 @@ def sweep(
     left = pids_inside(inodes) if inodes else []
     if left:
         errors.append(f"processes {left} inside the lab's namespaces did not die")
+    try:
+        result.radios = remove_radios(name, record, namespaces)
+    except NetlabError as exc:
+        errors.append(str(exc))
     for ns in namespaces:
         try:
             if kernel.remove_ns(ns):

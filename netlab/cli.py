@@ -54,7 +54,7 @@ from netlab.labcli import (
     cmd_up,
     lab_record,
 )
-from netlab.robots import RUNTIMES
+from netlab.robots import AIRS, RUNTIMES
 from sdfr import version_text
 from sdfr.argparsing import HintingParser
 from sdfr.hints import did_you_mean
@@ -129,6 +129,13 @@ def _runtime_options(p: argparse.ArgumentParser, default: str | None) -> None:
         default=docker.DEFAULT_IMAGE,
         help=f"the robot image of --runtime docker (default {docker.DEFAULT_IMAGE}; "
         "`make image` builds it)",
+    )
+    p.add_argument(
+        "--medium",
+        choices=AIRS,
+        default=None,
+        help="what robots meet on: a wired bridge, or 802.11 radios (mac80211_hwsim; each "
+        "sdfrd joins the fleet's WiFi) (default: the scenario says, else wired)",
     )
 
 
@@ -406,6 +413,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         report=not args.no_report,
         runtime=args.runtime,
         image=args.image,
+        medium=args.medium,
     )
     if result.status == "skipped":
         return EXIT_SKIPPED
@@ -436,7 +444,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 f"{did_you_mean(args.target, [*record.robots, 'medium'])} (robots: "
                 f"{', '.join(record.robots)}; or medium)"
             )
-        ns, iface = robot.ns, naming.ROBOT_IFACE
+        ns, iface = robot.ns, robot.iface
     if args.out == "-":
         return _stream(Capture(ns, iface, Path("-"), bpf=args.filter), args.duration)
     out = Path(args.out)

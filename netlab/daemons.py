@@ -9,9 +9,10 @@ import signal
 import subprocess
 import time
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
-from netlab import cleanup, naming
+from netlab import cleanup
 from netlab.errors import DaemonError, LabStateError, NetlabError, kernel_errors
 from netlab.manifest import Manifest, ProcRecord
 from netlab.robots import Daemon, NamespaceKind, Robot, RobotKind, RobotRef
@@ -43,6 +44,7 @@ class LabProcesses:
     name: str
     fleet: int
     addressing: str
+    air: str
     _record: Manifest | None
     _robots: dict[str, Robot]
     _daemons: dict[str, Daemon]
@@ -59,6 +61,9 @@ class LabProcesses:
         def _check_up(self) -> None: ...
 
         def _save(self) -> None: ...
+
+        @property
+        def wifi_secret_file(self) -> Path: ...
 
     # -- any command ---------------------------------------------------------------------
 
@@ -111,12 +116,14 @@ class LabProcesses:
         DaemonOptionError (a typo, with the closest option) unless sdfrd would take them."""
         robot = self.robot(ref)
         opts: dict[str, Any] = {
-            "iface": naming.ROBOT_IFACE,
+            "iface": robot.iface,
             "fleet": self.fleet,
             "robot_id": robot.name,
             "state_dir": robot.state_dir,
             "addressing": self.addressing,
         }
+        if self.air == "radio":  # sdfrd joins the fleet's WiFi on its radio (`wifi = auto`)
+            opts["wifi_secret_file"] = self.wifi_secret_file
         opts.update(options)
         check_options(robot.name, opts)
         return opts

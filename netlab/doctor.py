@@ -13,12 +13,13 @@ import os
 import shutil
 import subprocess
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 from pyroute2 import IPRoute, netns
 from pyroute2.netlink.exceptions import NetlinkError
 from pyroute2.netlink.rtnl import TC_H_ROOT
 
-from netlab import hostlimits
+from netlab import hostlimits, hwsim
 from netlab.errors import NetlabError, describe
 
 PROBE_TABLE = "doctor"
@@ -35,6 +36,8 @@ class Capabilities:
     numgen: bool = False
     netem: bool = False
     tbf: bool = False
+    #: Radio labs (`medium radio`): mac80211_hwsim in the kernel, iw and wpa_supplicant.
+    radio: bool = False
     gc_thresh3: int = 0  # the host-wide ARP table limit (0: unknown)
     #: Container robots (`--runtime docker`): None when not asked (`probe(docker=True)`).
     docker: bool | None = None
@@ -135,6 +138,9 @@ def _probe() -> Capabilities:
         ipr.close()
         if name in netns.listnetns():
             netns.remove(name)
+    radio, why_not = radio_support()
+    if why_not:
+        why["radio"] = why_not
     try:
         gc_thresh3 = hostlimits.current()["gc_thresh3"]
     except NetlabError as exc:
@@ -149,8 +155,30 @@ def _probe() -> Capabilities:
         numgen=found.get("numgen", False),
         netem=found.get("netem", False),
         tbf=found.get("tbf", False),
+        radio=radio,
         why=why,
     )
+
+
+def radio_support(
+    proc: Path = Path("/proc"), sys_class: Path = Path("/sys/class")
+) -> tuple[bool, str]:
+    """Whether radio labs can run here, and if not why (the kernel, then the tools)."""
+    if not hwsim.loaded():
+        if not (sys_class / "ieee80211").exists() and not (proc / "modules").exists():
+            return False, (
+                "no mac80211_hwsim: this kernel has no wireless stack loaded and cannot load "
+                "modules (no /proc/modules); the radio tier boots a kernel that has them in a "
+                "VM (`make test-radio`)"
+            )
+        return False, (
+            "no mac80211_hwsim loaded: `modprobe mac80211_hwsim radios=0` (each radio lab "
+            "makes its own radios)"
+        )
+    missing = [tool for tool in ("iw", "wpa_supplicant") if shutil.which(tool) is None]
+    if missing:
+        return False, f"{' and '.join(missing)} not found: apt-get install iw wpasupplicant"
+    return True, ""
 
 
 @functools.cache
@@ -205,6 +233,13 @@ def report(caps: Capabilities) -> list[tuple[str, bool, str]]:
             "tc tbf (sch_tbf)",
             caps.tbf,
             "rate limits without netem" if caps.tbf else "no rate limit unless netem is present",
+        ),
+        (
+            "802.11 radios (hwsim)",
+            caps.radio,
+            "radio labs (medium radio): a radio per robot, sdfrd joins the fleet's WiFi"
+            if caps.radio
+            else "no radio labs here (see radio: below); the VM tier (`make test-radio`) has them",
         ),
     ]
     if caps.docker is not None:

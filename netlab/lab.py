@@ -39,7 +39,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from netlab import cleanup, docker, hostlimits, kernel, manifest, naming, shaping
+from netlab import cleanup, docker, hostlimits, hwsim, kernel, manifest, naming, shaping
 from netlab.cleanup import SweepResult
 from netlab.daemons import START_TIMEOUT, STOP_TIMEOUT, SUN_PATH_MAX, LabProcesses
 from netlab.doctor import capabilities
@@ -55,11 +55,18 @@ from netlab.labmedium import LabMedium
 from netlab.manifest import Manifest, RobotRecord
 from netlab.medium import Medium
 from netlab.ranges import Pos, RangeModel, Topology
-from netlab.robots import RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
+from netlab.robots import AIRS, RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
 from netlab.shaping import LinkShape
 from sdfr.client import Client
 
 __all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "SUN_PATH_MAX", "Lab", "Robot", "RobotRef"]
+
+
+def _write_secret(path: Path, secret: str) -> None:
+    with kernel_errors(f"writing the lab's WiFi secret {path}"):
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as out:
+            out.write(secret + "\n")
 
 
 class Lab(LabProcesses, LabMedium):
@@ -67,6 +74,11 @@ class Lab(LabProcesses, LabMedium):
 
     `runtime` is the kind of robot `add_robot` makes unless told otherwise: "namespace" or
     "docker" (containers of `image`, which must be here: ``make image`` builds it).
+    `air` is what they meet on (a scenario's `medium`): "wired", a bridge whose rules make
+    ranges, partitions and loss, or "radio", one mac80211_hwsim radio per robot on which its
+    sdfrd joins the fleet's WiFi itself (the lab's random secret, `wifi_secret_file`, unless
+    told otherwise); every radio hears every other, and what needs the wired medium's rules
+    (partitions, moves, shaping) says so.
     """
 
     def __init__(
@@ -80,12 +92,21 @@ class Lab(LabProcesses, LabMedium):
         addressing: str = "manual",
         runtime: str = "namespace",
         image: str = docker.DEFAULT_IMAGE,
+        air: str = "wired",
     ) -> None:
         self.name = naming.check_lab_name(name)
         if addressing not in ("manual", "auto"):
             raise NetlabError(f"addressing: must be manual or auto, got {addressing!r}")
         if runtime not in RUNTIMES:
             raise NetlabError(f"runtime: one of {', '.join(RUNTIMES)}, got {runtime!r}")
+        if air not in AIRS:
+            raise NetlabError(f"medium: one of {', '.join(AIRS)}, got {air!r}")
+        if air == "radio" and runtime != "namespace":
+            raise NetlabError("medium radio: its robots are namespaces (runtime namespace)")
+        #: wired: every robot's eth0 on one bridge, the medium's rules between them; radio:
+        #: each robot a mac80211_hwsim radio, and sdfrd joins the fleet's WiFi on it.
+        self.air = air
+        self._hwsim: hwsim.Hwsim | None = None
         self.runtime = runtime
         self.image = image
         self._kinds: dict[str, RobotKind] = {}
@@ -151,7 +172,7 @@ class Lab(LabProcesses, LabMedium):
         me = os.getpid()
         record = Manifest(self.name, self.seed, self.fleet, runner_pid=me)
         record.runner_start = cleanup.start_time(me) or 0
-        record.runtime, record.addressing = self.runtime, self.addressing
+        record.runtime, record.addressing, record.air = self.runtime, self.addressing, self.air
         record.image = self.image if self.runtime == "docker" else ""
         manifest.claim(record)
         self._record = record
@@ -183,6 +204,9 @@ class Lab(LabProcesses, LabMedium):
             record.namespaces.append(self.medium.ns)
             manifest.save(record)
             self.medium.create()
+            if self.air == "radio":
+                self._hwsim = hwsim.Hwsim()
+                _write_secret(self.wifi_secret_file, os.urandom(24).hex())
         except LabExistsError:
             # The leftovers are not ours to touch: release the name, leave them for `down`.
             manifest.remove(self.name)
@@ -201,6 +225,9 @@ class Lab(LabProcesses, LabMedium):
         self._state = "down"
         self._close_clients()
         self.medium.close()
+        if self._hwsim is not None:
+            self._hwsim.close()
+            self._hwsim = None
         try:
             result = cleanup.sweep(self.name, self._record, keep_workdir=keep_workdir)
         finally:
@@ -225,6 +252,9 @@ class Lab(LabProcesses, LabMedium):
         self._save()
         self._close_clients()
         self.medium.close()
+        if self._hwsim is not None:
+            self._hwsim.close()
+            self._hwsim = None
         self._state = "detached"
 
     @classmethod
@@ -257,6 +287,7 @@ class Lab(LabProcesses, LabMedium):
             addressing=record.addressing,
             runtime=record.runtime,
             image=record.image or docker.DEFAULT_IMAGE,
+            air=record.air,
         )
         lab._adopt(record)
         return lab
@@ -268,7 +299,7 @@ class Lab(LabProcesses, LabMedium):
         for name, r in record.robots.items():
             robot = Robot(
                 name, r.index, r.ns, r.port, r.mac, IPv4Interface(r.address),
-                self.workdir / name, r.runtime,
+                self.workdir / name, r.runtime, r.iface,
             )  # fmt: skip
             self._robots[name] = robot
             self._macs.add(robot.mac)
@@ -282,6 +313,8 @@ class Lab(LabProcesses, LabMedium):
             hostlimits.mesh_entries(len(other.robots)) for other in manifest.others(self.name)
         )
         self.medium.open()
+        if self.air == "radio":
+            self._hwsim = hwsim.Hwsim()
         self._state = "up"
 
     def _check_up(self) -> None:
@@ -366,11 +399,12 @@ class Lab(LabProcesses, LabMedium):
         self._record.namespaces.append(robot.ns)
         self._record.containers += robot.containers
         self._record.robots[name] = RobotRecord(
-            robot.index, robot.ns, robot.port, robot.mac, str(robot.address), runtime
-        )
+            robot.index, robot.ns, robot.port, robot.mac, str(robot.address), runtime,
+            radio=robot.ns if self.air == "radio" else "",
+        )  # fmt: skip
         self._save()
         try:
-            self._plumb(robot, kind)
+            robot = self._plumb(robot, kind)
         except BaseException:
             # Leave the lab as it was: no half-made robot. Its veth goes with its namespace.
             with contextlib.suppress(NetlabError):
@@ -389,14 +423,31 @@ class Lab(LabProcesses, LabMedium):
         self.setup_seconds[name] = time.perf_counter() - t0
         return robot
 
-    def _plumb(self, robot: Robot, kind: RobotKind) -> None:
+    def _plumb(self, robot: Robot, kind: RobotKind) -> Robot:
+        """Make the robot's namespace and its link; the robot, with its link's name."""
         kind.create(self.name, robot)
-        kernel.ipv4_only(robot.ns)  # before eth0 exists, so that it inherits the default
-        self.medium.attach(robot.ns, robot.port, robot.mac)
+        kernel.ipv4_only(robot.ns)  # before its link exists, so that it inherits the default
+        if self._hwsim is not None:
+            # The radio is named as the namespace: a sweep finds it by the lab's prefix.
+            _, iface = hwsim.adopt(self._hwsim, robot.ns, robot.ns)
+            robot = dataclasses.replace(robot, iface=iface)
+            self._robots[robot.name] = robot
+            assert self._record is not None
+            self._record.robots[robot.name].iface = iface
+            self._save()
+        else:
+            self.medium.attach(robot.ns, robot.port, robot.mac)
         address = robot.address if self.addressing == "manual" else None
         kernel.bring_up(
-            robot.ns, naming.ROBOT_IFACE, address, f"configuring eth0 of robot {robot.name}"
+            robot.ns, robot.iface, address, f"configuring {robot.iface} of robot {robot.name}"
         )
+        return robot
+
+    @property
+    def wifi_secret_file(self) -> Path:
+        """A radio lab's WiFi secret (random, made at `up`): every robot's sdfrd joins the
+        fleet's network with it unless given another `wifi_secret_file`."""
+        return self.workdir / "wifi-secret"
 
     def add_robots(
         self, names: Iterable[str], positions: Mapping[str, Pos] | None = None
@@ -409,4 +460,4 @@ class Lab(LabProcesses, LabMedium):
         """The IPv4 addresses eth0 has right now (with `addressing="auto"`, sdfrd's choice)."""
         robot = self.robot(ref)
         doing = f"reading the addresses of robot {robot.name}"
-        return kernel.addresses(robot.ns, naming.ROBOT_IFACE, doing)
+        return kernel.addresses(robot.ns, robot.iface, doing)

@@ -35,7 +35,7 @@ def _topology(args: argparse.Namespace) -> Scenario:
 
     flags = {
         key: getattr(args, key)
-        for key in ("seed", "fleet", "radius", "spacing", "runtime")
+        for key in ("seed", "fleet", "radius", "spacing", "runtime", "medium")
         if getattr(args, key) is not None
     }
     try:
@@ -61,6 +61,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         addressing=sc.addressing,
         runtime=sc.runtime,
         image=args.image,
+        air=sc.medium,
     )
     t0 = time.monotonic()
     lab.up()
@@ -165,6 +166,8 @@ def cmd_down(args: argparse.Namespace) -> int:
     parts = [f"{len(result.namespaces)} namespaces"]
     if result.containers:
         parts.append(f"{len(result.containers)} containers")
+    if result.radios:
+        parts.append(f"{len(result.radios)} radios")
     if result.processes:
         parts.append(f"{len(result.processes)} processes")
     if result.workdir:
@@ -352,7 +355,7 @@ def cmd_logs(args: argparse.Namespace) -> int:
 def cmd_pingall(args: argparse.Namespace) -> int:
     record = lab_record(args.name)
     addresses = {  # the addresses in effect (sdfrd's own, with auto addressing)
-        name: (kernel.addresses(r.ns, naming.ROBOT_IFACE, f"reading {name}'s address") or [""])[0]
+        name: (kernel.addresses(r.ns, r.iface, f"reading {name}'s address") or [""])[0]
         for name, r in record.robots.items()
     }
     missing = [n for n, a in addresses.items() if not a]

@@ -24,6 +24,7 @@ class LabMedium:
 
     topology: Topology
     medium: Medium
+    air: str
     _state: str
     _batch: int
     _robots: dict[str, Robot]
@@ -57,7 +58,17 @@ class LabMedium:
         if self._batch == 0:
             self._apply_medium()
 
+    def _wired(self, what: str) -> None:
+        """NetlabError for `what` on a radio lab, whose radios all hear each other."""
+        if self.air != "wired":
+            raise NetlabError(
+                f"{what}: not on the radio medium yet, where every radio hears every other; "
+                "use a wired lab (medium wired)"
+            )
+
     def _apply_medium(self) -> None:
+        if self.air != "wired":  # (no port on the bridge: the radios meet over the air)
+            return
         links = with_link_loss(self.topology.links(), self._nft_loss)
         self.medium.load(links, {r.name: r.port for r in self._robots.values()})
 
@@ -65,7 +76,10 @@ class LabMedium:
         """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
 
         Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
+        On the radio medium every robot hears every other.
         """
+        if self.air != "wired":
+            return {(a, b): 0.0 for a in self._robots for b in self._robots if a != b}
         link_loss = {name: shape.loss for name, shape in self._shapes.items()}
         return with_link_loss(self.topology.links(), link_loss)
 
@@ -79,18 +93,21 @@ class LabMedium:
 
     def move(self, ref: RobotRef, pos: Pos) -> None:
         self._check_up()
+        self._wired("moving a robot")
         self.topology.move(self.robot(ref).name, pos)
         self._changed()
 
     def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
         """Cut every link between `groups` (robots in none form one more group)."""
         self._check_up()
+        self._wired("a partition")
         self.topology.partition([[self.robot(r).name for r in g] for g in groups])
         self._changed()
 
     def merge(self) -> None:
         """End the partition."""
         self._check_up()
+        self._wired("a merge")
         self.topology.merge()
         self._changed()
 
@@ -99,6 +116,7 @@ class LabMedium:
     ) -> None:
         """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
         self._check_up()
+        self._wired("a pair's loss")
         self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
         self._changed()
 
@@ -113,6 +131,7 @@ class LabMedium:
     ) -> list[tuple[float, Links]]:
         """Move the model's robots every `step` seconds for `duration`; the links at each step."""
         self._check_up()
+        self._wired("mobility")
         for name in model.robots:
             self.robot(name)
         timeline: list[tuple[float, Links]] = []
@@ -136,6 +155,7 @@ class LabMedium:
         kernel cannot do.
         """
         self._check_up()
+        self._wired("shaping a link")
         robot = self.robot(ref)
         shape = LinkShape.of(**params)
         plan = shaping.plan(shape, capabilities())

@@ -43,6 +43,8 @@ class RobotRecord:
     mac: str
     address: str  # with prefix length, e.g. 10.1.0.1/16
     runtime: str = "namespace"  # or "docker": its containers are named after `ns`
+    iface: str = "eth0"  # its link: eth0, or its radio's interface
+    radio: str = ""  # the name of its hwsim radio (a radio lab), made after it is recorded
 
 
 @dataclass(slots=True)
@@ -69,6 +71,8 @@ class Manifest:
     runtime: str = "namespace"  # the lab's default robot kind
     image: str = ""  # the robot image of docker robots
     addressing: str = "manual"
+    #: "wired" (a bridge) or "radio" (hwsim radios, one per robot)
+    air: str = "wired"
     #: Left running by its runner (`netlab up`): a missing runner is no failure, and other
     #: processes may change its medium (`netlab partition`...), from `medium`.
     detached: bool = False
@@ -99,6 +103,7 @@ class Manifest:
                 runtime=str(data.get("runtime", "namespace")),
                 image=str(data.get("image", "")),
                 addressing=str(data.get("addressing", "manual")),
+                air=str(data.get("air", "wired")),
                 detached=bool(data.get("detached", False)),
                 medium=dict(data.get("medium") or {}),
                 namespaces=[str(n) for n in data.get("namespaces", [])],

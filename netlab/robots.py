@@ -37,12 +37,14 @@ from ipaddress import IPv4Interface
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
-from netlab import docker, kernel
+from netlab import docker, kernel, naming
 from netlab.errors import kernel_errors
 from sdfr.config.load import option_flags
 from sdfr.host import procfs
 
 RUNTIMES = ("namespace", "docker")
+#: What robots meet on: a wired bridge, or 802.11 radios (mac80211_hwsim, the VM tier).
+AIRS = ("wired", "radio")
 #: Where a container robot's state dir is mounted (the image's volume).
 CONTAINER_STATE_DIR = "/var/lib/sdfr"
 #: sdfrd adds and removes its own addresses (`--addressing auto`): the daemon container
@@ -63,6 +65,8 @@ class Robot:
     address: IPv4Interface
     workdir: Path  # its daemon's state and log
     runtime: str = "namespace"
+    #: Its link to the medium: eth0 (a veth to the bridge), or a radio's wlanN.
+    iface: str = naming.ROBOT_IFACE
 
     @property
     def ip(self) -> str:

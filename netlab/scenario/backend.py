@@ -28,6 +28,9 @@ class RobotLike(Protocol):
     def mac(self) -> str: ...
 
     @property
+    def iface(self) -> str: ...
+
+    @property
     def log(self) -> Path: ...
 
 
@@ -93,6 +96,7 @@ class LabSpec:
     addressing: str = "manual"
     runtime: str = "namespace"
     image: str = DEFAULT_IMAGE
+    medium: str = "wired"
 
 
 def _real_lab(spec: LabSpec) -> LabLike:
@@ -107,6 +111,8 @@ def _real_lab(spec: LabSpec) -> LabLike:
         extra["addressing"] = spec.addressing
     if spec.runtime != "namespace":
         extra.update(runtime=spec.runtime, image=spec.image)
+    if spec.medium != "wired":
+        extra["air"] = spec.medium
     return Lab(spec.name, seed=spec.seed, fleet=spec.fleet, range_model=spec.range_model, **extra)
 
 

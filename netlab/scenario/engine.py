@@ -160,7 +160,10 @@ class Run:
         if mode in ("all", "robots"):
             caps += [
                 Capture(
-                    self.lab.robot(n).ns, naming.ROBOT_IFACE, self.run_dir / f"{n}.pcap", label=n
+                    self.lab.robot(n).ns,
+                    self.lab.robot(n).iface,
+                    self.run_dir / f"{n}.pcap",
+                    label=n,
                 )
                 for n in self.sc.names
             ]
@@ -387,6 +390,7 @@ class Run:
             "file": self.sc.source,
             "robots": len(self.sc.names),
             "runtime": self.sc.runtime,
+            "medium": self.sc.medium,
             "beacon_interval_s": self.sc.beacon,
             "quick": self.quick,
             "status": result.status,
@@ -441,12 +445,13 @@ def run(
     backend: Backend | None = None,
     runtime: str | None = None,
     image: str = DEFAULT_IMAGE,
+    medium: str | None = None,
 ) -> RunResult:
     """Run `scenario` on a new lab (always taken down); progress goes to `say`.
 
     The run folder is `run_dir`, or a new ``runs/<name>-<time>``.  `quick` uses the steps'
-    `quick` durations; `capture` and `runtime` override the scenario's; `image` is the robot
-    image of the docker runtime.  Skipped (status "skipped", with the reason said) when
+    `quick` durations; `capture`, `runtime` and `medium` override the scenario's; `image` is
+    the robot image of the docker runtime.  Skipped (status "skipped", with the reason said) when
     sdfrd lacks an option the scenario needs.
     """
     backend = backend or Backend()
@@ -454,11 +459,14 @@ def run(
         scenario = replace(scenario, capture=capture)
     if runtime is not None:
         scenario = replace(scenario, runtime=runtime)
+    if medium is not None:
+        scenario = replace(scenario, medium=medium)
     if not backend.can_capture:
         scenario = replace(scenario, capture="none")
     head = (
         f"scenario {scenario.name}: {len(scenario.names)} robots"
-        f"{' (containers)' if scenario.runtime == 'docker' else ''}, beacon {scenario.beacon:g} s"
+        f"{' (containers)' if scenario.runtime == 'docker' else ''}"
+        f"{' on radios' if scenario.medium == 'radio' else ''}, beacon {scenario.beacon:g} s"
         f"{' (the product default is 10 s)' if scenario.beacon != PRODUCT_BEACON else ''}"
     )
     spec = LabSpec(
@@ -469,6 +477,7 @@ def run(
         scenario.addressing,
         scenario.runtime,
         image,
+        scenario.medium,
     )
     reason = missing_requirements(scenario, backend.flags(spec))
     if reason is not None:

@@ -13,7 +13,7 @@ from netlab.errors import NetlabError
 from netlab.judging import fmt_set
 from netlab.mobility import HALL
 from netlab.ranges import Pos
-from netlab.robots import RUNTIMES
+from netlab.robots import AIRS, RUNTIMES
 from netlab.scenario.spec import (
     KEYWORDS,
     Bad,
@@ -83,7 +83,9 @@ class Scenario:
     each robot a static address) or "auto" (sdfrd derives its own from the MAC, checks and
     defends it: ``sdfrd --addressing auto``; what makes a `Collision` collide).  `runtime`:
     robots as "namespace"s or "docker" containers of the robot image (`netlab.robots`);
-    `kinds` gives some robots another (robot -> runtime: a lab may mix them).
+    `kinds` gives some robots another (robot -> runtime: a lab may mix them).  `medium`:
+    "wired" (a bridge) or "radio" (802.11 radios, each robot's sdfrd joining the fleet's
+    WiFi; the VM tier: `make test-radio`).
     """
 
     name: str
@@ -105,6 +107,7 @@ class Scenario:
     addressing: str = "manual"
     runtime: str = "namespace"
     kinds: Mapping[str, str] = field(default_factory=dict)
+    medium: str = "wired"
     #: Where it was read from, for messages.
     source: str | None = field(default=None, compare=False)
 
@@ -166,6 +169,8 @@ class Scenario:
             raise Bad(f"addressing: one of {', '.join(ADDRESSING)}, got {self.addressing!r}")
         if self.runtime not in RUNTIMES:
             raise Bad(f"runtime: one of {', '.join(RUNTIMES)}, got {self.runtime!r}")
+        if self.medium not in AIRS:
+            raise Bad(f"medium: one of {', '.join(AIRS)}, got {self.medium!r}")
         for robot, kind in self.kinds.items():
             if robot not in self.names:
                 raise Bad(f"kinds: unknown robot {robot!r}")

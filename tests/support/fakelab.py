@@ -24,6 +24,7 @@ class FakeRobot:
         self.name = name
         self.mac = mac
         self.ns = f"fake-{name}"
+        self.iface = "eth0"
         self.log = Path("/nonexistent") / f"{name}.log"
 
 

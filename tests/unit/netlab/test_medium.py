@@ -31,8 +31,9 @@ from netlab.shaping import LinkShape, netem_options, parse_rate, plan, tbf_optio
 
 HERE = Capabilities(root=True, netns=True, veth_bridge=True, nft_bridge=True, numgen=True, tbf=True)
 WITH_NETEM = Capabilities(
-    root=True, netns=True, veth_bridge=True, nft_bridge=True, numgen=True, tbf=True, netem=True
-)
+    root=True, netns=True, veth_bridge=True, nft_bridge=True, numgen=True, tbf=True, netem=True,
+    radio=True,
+)  # fmt: skip
 
 
 # -- names and addresses ---------------------------------------------------------------------
@@ -425,6 +426,7 @@ def test_doctor_report_names_consequences() -> None:
     assert "tc netem (sch_netem)    NO" in text
     assert "refuses delay" in text and "modprobe sch_netem" in text and "tbf" in text
     assert "ShapingUnsupported" not in text  # errors in words, not class names
+    assert "802.11 radios (hwsim)   NO" in text and "make test-radio" in text
     assert "NO" not in format_report(WITH_NETEM)
 
 

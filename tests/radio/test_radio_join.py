@@ -1,0 +1,152 @@
+"""The radio tier: robots on 802.11 radios (the kernel's mac80211_hwsim), each sdfrd joining
+the fleet's ad-hoc WiFi through its own code (`sdfr.host.wifi`: iw, then wpa_supplicant) in
+IBSS with WPA2 (RSN) and in 802.11s mesh with SAE, then discovering the others over the air.
+
+This machine's kernel has no wireless stack, so here these tests skip (saying why);
+`make test-radio` (scripts/vm.sh radio) boots a Debian kernel with mac80211_hwsim under
+virtme-ng and runs them there, where a skip fails the tier.  The VM runs under software
+emulation on one CPU: the deadlines below are for that machine, and the times measured are
+printed (`-s`) for docs/fleet-behaviour.md.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from netlab import hwsim, naming
+from netlab.lab import Lab
+
+pytestmark = pytest.mark.root
+
+ROBOTS = ("r1", "r2", "r3")
+FLEET = 7
+#: Under emulation a robot's start (PBKDF2 of the secret in pure Python, wpa_supplicant) and
+#: a join take seconds; these bound the whole, generously.
+START = 240.0
+DISCOVER = 120.0
+#: The WiFi watch reports a station refused for GRACE (20 s), looking every 5 s at first.
+WATCH = 90.0
+
+
+@pytest.fixture(autouse=True)
+def radios() -> None:
+    if not hwsim.loaded():
+        pytest.skip(
+            "no mac80211_hwsim in this kernel (this host has no wireless stack): "
+            "`make test-radio` runs these tests in a VM"
+        )
+    missing = [t for t in ("iw", "wpa_supplicant") if shutil.which(t) is None]
+    assert not missing, f"{missing} not installed: scripts/bootstrap-vm.sh radio installs them"
+
+
+@pytest.fixture
+def lab(tmp_path: Path) -> Iterator[Lab]:
+    with Lab(
+        naming.unique_lab_name("w"), workdir=tmp_path / "lab", fleet=FLEET, air="radio"
+    ) as lab:
+        yield lab
+
+
+def wait_until(what: str, ok: Callable[[], bool], timeout: float) -> float:
+    """Seconds until `ok()`; fails saying `what` after `timeout`."""
+    t0 = time.monotonic()
+    while not ok():
+        if time.monotonic() - t0 > timeout:
+            pytest.fail(f"not within {timeout:.0f} s: {what}")
+        time.sleep(0.5)
+    return time.monotonic() - t0
+
+
+def listed(lab: Lab, robot: str) -> set[str]:
+    return {str(n["robot_id"]) for n in lab.client(robot).neighbors()}
+
+
+def stations(lab: Lab, robot: str) -> dict[str, str]:
+    """The robot's radio's stations (peers), by MAC: `iw dev X station dump`'s text of each."""
+    r = lab.robot(robot)
+    out = lab.exec(r, ["iw", "dev", r.iface, "station", "dump"], capture_output=True, text=True)
+    parts = re.split(r"^Station ", out.stdout, flags=re.M)
+    return {p.split()[0]: p for p in parts[1:]}
+
+
+def mac_of(lab: Lab, robot: str) -> str:
+    r = lab.robot(robot)
+    out = lab.exec(r, ["cat", f"/sys/class/net/{r.iface}/address"], capture_output=True, text=True)
+    return out.stdout.strip()
+
+
+def iface_type(lab: Lab, robot: str) -> str:
+    r = lab.robot(robot)
+    out = lab.exec(r, ["iw", "dev", r.iface, "info"], capture_output=True, text=True)
+    found = re.search(r"^\s*type (.+)$", out.stdout, re.M)
+    return found.group(1).strip() if found else out.stdout
+
+
+@pytest.mark.parametrize("mode", ["ibss", "mesh"])
+def test_robots_join_the_fleets_wifi_and_discover_each_other_and_another_secret_never_joins(
+    lab: Lab, mode: str, tmp_path: Path
+) -> None:
+    """r1-r3 have the lab's secret, r4 another: r1-r3 join (WPA2's 4-way handshake in IBSS,
+    SAE and AMPE in mesh) and list each other; r4 is never authorized by them, lists nobody
+    and is listed by nobody, its pings do not get through, and its log and /health say that
+    its secret is likely wrong (r1's /health names r4's radio)."""
+    lab.add_robots([*ROBOTS, "r4"])
+    wrong = tmp_path / "wrong-secret"
+    wrong.write_text("not the fleet's secret\n")
+    wrong.chmod(0o600)
+    t0 = time.monotonic()
+    lab.start_all(ROBOTS, timeout=START, wifi_mode=mode, beacon_interval=1.0)
+    started = time.monotonic() - t0
+    lab.start_all(
+        ["r4"], timeout=START, wifi_mode=mode, beacon_interval=1.0, wifi_secret_file=wrong
+    )
+    everyone = set(ROBOTS)
+    seen = wait_until(
+        "r1, r2 and r3 each list the two others",
+        lambda: all(listed(lab, r) == everyone - {r} for r in ROBOTS),
+        DISCOVER,
+    )
+    print(f"\nradio {mode}: {len(ROBOTS)} robots healthy {started:.1f} s after start, "
+          f"each listing the others {seen:.1f} s later")  # fmt: skip
+    expected = {"ibss": "IBSS", "mesh": "mesh point"}[mode]
+    macs = {r: mac_of(lab, r) for r in [*ROBOTS, "r4"]}
+    for robot in ROBOTS:
+        assert iface_type(lab, robot) == expected
+        peers = stations(lab, robot)
+        for other in everyone - {robot}:
+            assert macs[other] in peers, f"{robot} has no station {other}: {sorted(peers)}"
+            text = peers[macs[other]]
+            assert re.search(r"authorized:\s+yes", text), text
+            if mode == "mesh":
+                assert re.search(r"mesh plink:\s+ESTAB", text), text
+    deadline = time.monotonic() + 10.0  # ten beacons of r4's
+    while time.monotonic() < deadline:
+        assert listed(lab, "r4") == set()
+        for robot in ROBOTS:
+            assert "r4" not in listed(lab, robot)
+            peer = stations(lab, robot).get(macs["r4"])
+            assert peer is None or re.search(r"authorized:\s+no", peer), peer
+        time.sleep(1.0)
+    # Nothing of r4's reaches r1 at the IP level either: no key, no frames.
+    ping = lab.exec("r4", ["ping", "-c", "3", "-W", "1", lab.robot("r1").ip])
+    assert ping.returncode != 0, ping.stdout
+    # And r4 says why, in its log and its /health; the others name r4's radio.
+    said = wait_until(
+        "r4's /health warns that its WiFi secret is not the fleet's",
+        lambda: any("likely not the fleet's" in w for w in lab.client("r4").health()["warnings"]),
+        WATCH,
+    )
+    print(f"radio {mode}: r4's /health said its secret is wrong {said:.1f} s later")
+    assert "has not completed the key handshake" in lab.robot("r4").log.read_text()
+    wait_until(
+        "r1's /health names r4's radio as one that never completed the handshake",
+        lambda: any(macs["r4"] in w for w in lab.client("r1").health()["warnings"]),
+        WATCH,
+    )
+    assert lab.client("r1").health()["status"] == "warning"
