@@ -27,7 +27,7 @@ def challenge(core: CoreState, peer: Peer, addr: Addr, now: float, *, pad: bool 
     ADDR_CHALLENGE_RATE and CHALLENGE_RATE; and to an address that has not proven a round
     trip, no more bytes than it sent (`sending.emit`): a flood of claims costs a bounded trickle.
     """
-    if now < peer.challenged_at + core.config.ping_timeout:
+    if now < peer.challenged_at + core.config.ping_timeout and not elsewhere(core, peer, addr):
         return True  # one is in flight (or was just answered)
     if not core._address_proven(addr, now) and not core._addr_challenges.take(addr[0], now):
         core.counters.challenges_limited += 1
@@ -44,6 +44,20 @@ def challenge(core: CoreState, peer: Peer, addr: Addr, now: float, *, pad: bool 
     peer.challenged_at = now
     core.counters.challenges += 1
     return True
+
+
+def elsewhere(core: CoreState, peer: Peer, addr: Addr) -> bool:
+    """Whether the challenge in flight to `peer` went to another address than `addr`: a
+    robot that moved does not answer where it was, and waiting out that challenge would
+    keep it from being asked where it is now (both are still bounded per address and in
+    all)."""
+    return any(
+        ping.robot_id == peer.robot_id and ping.challenge and ping.addr != addr
+        for ping in core._pings.values()
+    ) and not any(
+        ping.robot_id == peer.robot_id and ping.challenge and ping.addr == addr
+        for ping in core._pings.values()
+    )
 
 
 def invite(core: CoreState, now: float) -> None:

@@ -557,3 +557,26 @@ def test_a_set_too_large_to_announce_is_reported_not_raised() -> None:
     net.run_for(3 * BEACON)
     assert net.sees("r2", "r1") and net.sees("r1", "r2")  # still beaconing and pinging
     assert net.nodes["r2"].core.peers["r1"].services == ()
+
+
+def test_a_challenge_lost_at_the_old_address_does_not_hold_back_the_new_one() -> None:
+    """A robot that moved does not answer where it was: while our challenge to its old
+    address is out, its datagrams from the new one are challenged there at once, not a ping
+    timeout later (tests/ns/test_addressing.py saw a peer left unlisted past its deadline)."""
+    from sdfr.protocol import challenges
+
+    net = SimNet(seed=131)
+    names = fleet(net, 2, n_services=2)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(BEACON)
+    r1, r2 = net.nodes["r1"], net.nodes["r2"]
+    old = r2.addr
+    r2.addr = ("10.1.0.77", old[1])  # r2 has moved; r1 does not know yet
+    peer = r1.core.peers["r2"]
+    assert challenges.challenge(r1.core, peer, old, net.now)  # lost: nobody is there now
+    net._pump(r1)
+    assert kind_of(r1.sent[-1][1]) == "ping" and r1.sent[-1][2] == old
+    net.move("r2", r2.addr[0])  # r2 speaks from its new address
+    took = net.wait_until(lambda: r1.core.peers["r2"].address == r2.addr, timeout=BEACON)
+    assert took < r1.core.config.ping_timeout / 2
+    assert net.sees("r1", "r2")
