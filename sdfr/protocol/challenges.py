@@ -23,7 +23,8 @@ def challenge(core: CoreState, peer: Peer, addr: Addr, now: float, *, pad: bool 
     moved, or we were apart): the challenge pays for its answer with its own challenge
     riding on it, which it sends no unproven address more bytes than it got from there.
 
-    One at a time per robot, at most one a ping timeout; per address and in all at most
+    One at a time per robot, at most one a ping timeout (but one to a new address of a robot
+    whose challenge went to another, `elsewhere`); per address and in all at most
     ADDR_CHALLENGE_RATE and CHALLENGE_RATE; and to an address that has not proven a round
     trip, no more bytes than it sent (`sending.emit`): a flood of claims costs a bounded trickle.
     """
