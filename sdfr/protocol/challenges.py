@@ -52,13 +52,8 @@ def elsewhere(core: CoreState, peer: Peer, addr: Addr) -> bool:
     robot that moved does not answer where it was, and waiting out that challenge would
     keep it from being asked where it is now (both are still bounded per address and in
     all)."""
-    return any(
-        ping.robot_id == peer.robot_id and ping.challenge and ping.addr != addr
-        for ping in core._pings.values()
-    ) and not any(
-        ping.robot_id == peer.robot_id and ping.challenge and ping.addr == addr
-        for ping in core._pings.values()
-    )
+    out = {p.addr for p in core._pings.values() if p.robot_id == peer.robot_id and p.challenge}
+    return bool(out) and addr not in out
 
 
 def invite(core: CoreState, now: float) -> None:
