@@ -1,13 +1,20 @@
-"""netlab.hwsim's generic netlink codec, on bytes (the radios themselves: tests/radio)."""
+"""netlab.hwsim's generic netlink codec, on bytes (the radios themselves: tests/radio), what
+the doctor says of radios, and what a radio lab refuses."""
 
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import pytest
 
 from netlab import doctor, hwsim
+from netlab.errors import NetlabError
+from netlab.labmedium import LabMedium
+from netlab.ranges import Topology
+from netlab.robots import Robot, RobotRef
 
 
 def test_an_attribute_is_padded_to_four_bytes_and_reads_back() -> None:
@@ -59,3 +66,42 @@ def test_the_doctor_says_why_radio_labs_cannot_run(tmp_path: Path) -> None:
     (tmp_path / "proc" / "modules").write_text("")
     ok, why = doctor.radio_support(proc=tmp_path / "proc", sys_class=tmp_path / "sys")
     assert not ok and "modprobe mac80211_hwsim" in why
+
+
+class _RadioMedium(LabMedium):
+    """The medium part of a radio lab, alone (its lab is up, robots r1 and r2)."""
+
+    def __init__(self) -> None:
+        self.air, self._state, self._batch = "radio", "up", 0
+        self.topology = Topology()
+        self._robots = {}
+        self._shapes, self._nft_loss = {}, {}
+        for name in ("r1", "r2"):
+            self.topology.add(name)
+            self._robots[name] = cast(Robot, name)
+
+    def robot(self, ref: RobotRef) -> Robot:
+        return cast(Robot, ref)
+
+    def _check_up(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize(
+    ("what", "call"),
+    [
+        ("a partition", lambda m: m.partition([["r1"], ["r2"]])),
+        ("a merge", lambda m: m.merge()),
+        ("moving a robot", lambda m: m.move("r1", (5.0, 0.0))),
+        ("a pair's loss", lambda m: m.set_pair_quality("r1", "r2", loss=10.0)),
+        ("shaping a link", lambda m: m.shape("r1", delay=10)),
+    ],
+)
+def test_a_radio_lab_refuses_what_needs_the_wired_medium(
+    what: str, call: Callable[[LabMedium], object]
+) -> None:
+    """docs/scenarios.md: every radio hears every other; the wired medium's rules say so."""
+    medium = _RadioMedium()
+    with pytest.raises(NetlabError, match=f"{what}: not on the radio medium yet"):
+        call(medium)
+    assert medium.links() == {("r1", "r2"): 0.0, ("r2", "r1"): 0.0}

@@ -78,6 +78,11 @@ def test_ibss_supplicant_config(tmp_path: Path) -> None:
     p = wifi.plan(cfg_for(tmp_path, wifi_freq=2437))
     lines = p.config_text.splitlines()
     assert "ap_scan=2" in lines
+    # Its control sockets in sdfrd's state directory, not the /run/wpa_supplicant every
+    # namespace (and any other wpa_supplicant) shares.
+    assert p.ctrl_dir == p.config_path.parent / "wpa_supplicant"
+    assert f"ctrl_interface={p.ctrl_dir}" in lines
+    assert f"wpa_cli -p {p.ctrl_dir} -i wlan0 status" in p.describe()
     net = lines[lines.index("network={") + 1 : lines.index("}")]
     assert [x.strip() for x in net] == [
         'ssid="sdfr-fleet-7"',
