@@ -49,6 +49,7 @@ class LabProcesses:
     _robots: dict[str, Robot]
     _daemons: dict[str, Daemon]
     _daemon_opts: dict[str, dict[str, Any]]
+    _ended_by_lab: set[str]  # robots whose sdfrd the lab stopped or killed
     _procs: list[subprocess.Popen[Any]]
     _clients: dict[str, Client]
 
@@ -166,6 +167,7 @@ class LabProcesses:
             robot.state_dir.mkdir(parents=True, exist_ok=True)
         started = self.kind(robot.runtime).spawn(self.name, robot, opts)
         self._daemons[robot.name] = started.daemon
+        self._ended_by_lab.discard(robot.name)
         self._daemon_opts[robot.name] = dict(options)
         self._procs += started.helpers
         self._record_proc(robot, started.daemon.pid, "sdfrd", started.argv)
@@ -207,6 +209,16 @@ class LabProcesses:
         proc = self._daemons.get(self.robot(ref).name)
         return proc is not None and proc.poll() is None
 
+    def daemons_ended(self) -> dict[str, str]:
+        """The robots whose sdfrd ended without the lab stopping or killing it, and how
+        ("signal 9 (SIGKILL)", "status 1"): a daemon that crashed or that something else
+        killed."""
+        return {
+            name: _status(code)
+            for name, proc in self._daemons.items()
+            if name not in self._ended_by_lab and (code := proc.poll()) is not None
+        }
+
     def daemon_pid(self, ref: RobotRef) -> int | None:
         """The pid of the robot's running sdfrd supervisor (its layers are its children)."""
         proc = self._daemons.get(self.robot(ref).name)
@@ -217,6 +229,7 @@ class LabProcesses:
         robot = self.robot(ref)
         proc = self._running_daemon(robot)
         self._drop_client(robot)
+        self._ended_by_lab.add(robot.name)
         cleanup.signal_process(proc.pid, signal.SIGTERM)
         try:
             return proc.wait(timeout)
@@ -233,6 +246,7 @@ class LabProcesses:
         robot = self.robot(ref)
         proc = self._running_daemon(robot)
         self._drop_client(robot)
+        self._ended_by_lab.add(robot.name)
         cleanup.signal_process(proc.pid, signal.SIGKILL)
         proc.wait()
 
@@ -284,4 +298,10 @@ def _reads_stdin(kw: Mapping[str, Any]) -> bool:
 
 
 def _status(code: int) -> str:
-    return f"signal {-code}" if code < 0 else f"status {code}"
+    """An exit status as Popen gives it, in words: "status 1", "signal 9 (SIGKILL)"."""
+    if code >= 0:
+        return f"status {code}"
+    try:
+        return f"signal {-code} ({signal.Signals(-code).name})"
+    except ValueError:
+        return f"signal {-code}"

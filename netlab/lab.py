@@ -129,6 +129,7 @@ class Lab(LabProcesses, LabMedium):
         self._nft_loss: dict[str, float] = {}
         self._daemons: dict[str, Daemon] = {}
         self._daemon_opts: dict[str, dict[str, Any]] = {}
+        self._ended_by_lab: set[str] = set()
         self._procs: list[subprocess.Popen[Any]] = []
         self._clients: dict[str, Client] = {}
         self.setup_seconds: dict[str, float] = {}

@@ -122,7 +122,7 @@ class Run:
             finally:
                 self._teardown(captures, probe, observer)
         except (NetlabError, ApiError) as exc:
-            self.error = self.error or str(exc)
+            self.error = self.error or f"{exc}{self._ended_unasked()}"
             self.say(f"ERROR {exc}")
         self.wall = (start_wall, self.clock.time())
         failed = any(c.ok is False for c in self.checks)
@@ -221,7 +221,7 @@ class Run:
                         self.history.usage[i] = (before, self._usage())
                     ok = True
             except (NetlabError, ApiError, Bad) as exc:
-                self.error = f"{step_ref(i, step)}: {exc}"
+                self.error = f"{step_ref(i, step)}: {exc}{self._ended_unasked()}"
                 self.say(f"ERROR {self.error}")
                 return
             finally:
@@ -229,6 +229,15 @@ class Run:
             if not ok and isinstance(step, Check) and step.fatal:
                 self.say(f"stopping: {step_ref(i, step)} failed and later steps rely on it")
                 return
+
+    def _ended_unasked(self) -> str:
+        """For an error: the robots whose sdfrd ended though no step stopped it (a crash, or
+        something else killed it), how, and where their logs are; empty if none."""
+        ended = self.lab.daemons_ended()
+        if not ended:
+            return ""
+        said = ", ".join(f"{name} ({how})" for name, how in sorted(ended.items()))
+        return f"; sdfrd ended though no step stopped it on {said}: see logs/ in the run folder"
 
     def _usage(self) -> dict[str, procstat.Usage]:
         """A /proc reading of each running daemon's process tree (empty when the lab cannot

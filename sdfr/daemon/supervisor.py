@@ -23,15 +23,18 @@ killed and started again. A layer that cannot start at all (exit status 2: an ad
 is not this machine's, permission denied, a bad configuration) ends sdfrd at once with
 status 2, since a restart cannot fix it. It stops both layers on SIGTERM. If the
 supervisor itself is killed, the kernel kills both layers (PR_SET_PDEATHSIG), so a
-`kill -9` of sdfrd is a silent departure. Under systemd (Type=notify) it says READY=1 once both
-layers serve (the discovery layer beats "starting" until it speaks on the fleet's network),
-and sends the watchdog's WATCHDOG=1 (sdfr.daemon.notify).
+`kill -9` of sdfrd is a silent departure. A crash in native code (SIGSEGV, SIGABRT, SIGBUS,
+SIGFPE, SIGILL) leaves each thread's stack in the log (faulthandler). Under systemd
+(Type=notify) it says READY=1 once both layers serve (the discovery layer beats
+"starting" until it speaks on the fleet's network), and sends the watchdog's WATCHDOG=1
+(sdfr.daemon.notify).
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import faulthandler
 import fcntl
 import gc
 import importlib
@@ -527,6 +530,9 @@ class Supervisor:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # A crash in native code (a segfault, an abort) writes every thread's Python stack to
+    # stderr (the log) before the process dies, instead of ending it without a line.
+    faulthandler.enable(all_threads=True)
     logs.setup("sdfrd")
     try:
         cfg = from_args(argv)

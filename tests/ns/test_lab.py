@@ -537,6 +537,29 @@ def test_daemons_follow_partition_and_merge(make_lab: Callable[..., Lab]) -> Non
     assert took < 2 * BEACON
 
 
+def test_a_daemon_that_ends_unasked_is_named_with_its_signal_and_its_stack(
+    make_lab: Callable[..., Lab],
+) -> None:
+    """The lab tells a daemon that crashed or was killed from elsewhere from one it stopped
+    or killed itself; a native crash leaves every thread's Python stack in the robot's log."""
+    lab = make_lab(4)
+    lab.start_all(beacon_interval=BEACON)
+    assert lab.daemons_ended() == {}
+    lab.stop("r1")
+    lab.kill("r2")
+    pid3, pid4 = lab.daemon_pid("r3"), lab.daemon_pid("r4")
+    assert pid3 is not None and pid4 is not None
+    os.kill(pid3, signal.SIGKILL)  # not the lab's doing
+    os.kill(pid4, signal.SIGSEGV)  # as a crash in native code would
+    poll("both ended", lambda: len(lab.daemons_ended()) == 2 or str(lab.daemons_ended()), 10)
+    assert lab.daemons_ended() == {"r3": "signal 9 (SIGKILL)", "r4": "signal 11 (SIGSEGV)"}
+    log = lab.robot("r4").log.read_text(errors="replace")
+    assert "Fatal Python error: Segmentation fault" in log
+    assert log.count("(most recent call first)") >= 3, log[-2000:]  # main, api, discovery
+    lab.restart("r3")
+    assert lab.daemons_ended() == {"r4": "signal 11 (SIGSEGV)"}
+
+
 def test_leftovers_name_what_is_left_of_a_lab(lab: Lab) -> None:
     left = cleanup.leftovers(lab.name)
     assert f"namespace {naming.air_ns(lab.name)}" in left

@@ -43,6 +43,7 @@ class FakeLab:
         self.topology = Topology(spec.range_model)
         self.robots: dict[str, FakeRobot] = {}
         self.running: set[str] = set()
+        self.crashed: dict[str, str] = {}
         self.services: dict[str, dict[str, str]] = {}
         self.heard: dict[str, set[str]] = {}
         self.blind: set[tuple[str, str]] = set()
@@ -98,6 +99,15 @@ class FakeLab:
         self._running(ref)
         self.calls.append(("kill", ref))
         self.running.discard(ref)
+
+    def crash(self, ref: str, how: str = "signal 9 (SIGKILL)") -> None:
+        """sdfrd on `ref` ends without the lab asking (a crash, a kill from elsewhere)."""
+        self._running(ref)
+        self.running.discard(ref)
+        self.crashed[ref] = how
+
+    def daemons_ended(self) -> dict[str, str]:
+        return dict(self.crashed)
 
     def restart(self, ref: str, *, timeout: float = 20, **options: Any) -> None:
         self.calls.append(("restart", ref))

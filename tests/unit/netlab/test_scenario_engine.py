@@ -183,3 +183,32 @@ def test_a_deadline_is_counted_in_the_backend_s_time(
     # r3 runs and is listed: not unreachable after 5 virtual seconds either.
     assert second.ok is False and second.at > first.at
     assert result.status == "failed" and result.duration < 30
+
+
+def test_an_error_names_the_daemons_that_ended_though_no_step_stopped_them(
+    fake: tuple[Backend, list[FakeLab]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot's API that stops answering is explained by its daemon's end (a crash, a kill
+    from elsewhere), not left as a bare "cannot reach"; a robot a step stopped is not named."""
+    backend, _ = fake
+    clock = _virtual(backend, monkeypatch)
+    real_start_all = FakeLab.start_all
+
+    def start_all_then_crash(lab: FakeLab, *args: object, **kw: object) -> None:
+        real_start_all(lab, *args, **kw)  # type: ignore[arg-type]
+        lab.crash("r2")
+
+    monkeypatch.setattr(FakeLab, "start_all", start_all_then_crash)
+    sc = Scenario(
+        "crash",
+        robots=3,
+        beacon=PRODUCT_BEACON,
+        capture="none",
+        steps=[Start(), Stop("r3"), Publish("all", "camera", "sensor.camera")],
+    )
+    result = run(sc, run_dir=tmp_path, backend=replace(backend, clock=clock), say=quiet([]))
+    assert result.status == "error"
+    assert result.error is not None
+    assert "step 3 (publish)" in result.error
+    assert "sdfrd ended though no step stopped it on r2 (signal 9 (SIGKILL))" in result.error
+    assert "r3 (" not in result.error
