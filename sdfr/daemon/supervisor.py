@@ -531,8 +531,10 @@ class Supervisor:
 
 def main(argv: list[str] | None = None) -> int:
     # A crash in native code (a segfault, an abort) writes every thread's Python stack to
-    # stderr (the log) before the process dies, instead of ending it without a line.
-    faulthandler.enable(all_threads=True)
+    # stderr (the log) before the process dies, instead of ending it without a line. (A stderr
+    # that is no file, or closed, has nowhere to write it.)
+    with contextlib.suppress(OSError, ValueError):
+        faulthandler.enable(all_threads=True)
     logs.setup("sdfrd")
     try:
         cfg = from_args(argv)
