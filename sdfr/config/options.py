@@ -288,6 +288,13 @@ class Config:
         return {"on": True, "off": False}.get(self.ssdp_interop)
 
     @property
+    def wifi_wanted(self) -> bool:
+        """sdfrd joins the fleet's WiFi if its interface is wireless: wifi is not off and a
+        secret is configured (`sdfr.host.wifi.setup`, `sdfr.host.wifiwatch.watch_for`)."""
+        has_secret = self.wifi_secret is not None or self.wifi_secret_file is not None
+        return self.wifi != "off" and has_secret
+
+    @property
     def effective_ping_interval(self) -> float:
         return self.ping_interval if self.ping_interval is not None else self.beacon_interval
 

@@ -123,7 +123,9 @@ class DiscoveryLayer:
         self.wifi: Watch | None = None
         self.wifi_state: status.Wifi | None = None
         self._wifi_next = 0.0
-        if cfg.wifi != "off" and (cfg.wifi_secret or cfg.wifi_secret_file):
+        #: A look at the stations under way (`iw` in a thread); its task, kept while it runs.
+        self._wifi_look: asyncio.Task[None] | None = None
+        if cfg.wifi_wanted:  # (wifiwatch is not even loaded otherwise)
             from sdfr.host import wifiwatch
 
             self.wifi = wifiwatch.watch_for(cfg)
@@ -218,17 +220,30 @@ class DiscoveryLayer:
                 self._guard("saving the history map", self._save)
 
     def _watch_wifi(self) -> None:
+        """Look at the WiFi's stations when a look is due and none is under way: `iw` runs in
+        a thread, so a slow radio (or a slow `iw`) never holds back beacons and answers."""
+        if self.wifi is None or time.monotonic() < self._wifi_next or self._wifi_look:
+            return
+        self._wifi_look = self.loop.create_task(self._look_at_wifi(self.wifi))
+
+    async def _look_at_wifi(self, watch: Watch) -> None:
         from sdfr.host import wifiwatch
 
-        now = time.monotonic()
-        if self.wifi is None or now < self._wifi_next:
-            return
-        self.wifi_state, lines = self.wifi.observe(now, wifiwatch.station_dump(self.wifi.iface))
-        early = time.time() - self.started < wifiwatch.FIRST_MINUTE
-        soon = early or self.wifi.pending
-        self._wifi_next = now + (wifiwatch.FIRST_PERIOD if soon else wifiwatch.PERIOD)
-        for line in lines:
-            log.warning("%s", line)
+        try:
+            stations = await asyncio.to_thread(wifiwatch.station_dump, watch.iface)
+        finally:
+            self._wifi_look = None
+
+        def seen() -> None:
+            now = time.monotonic()
+            self.wifi_state, lines = watch.observe(now, stations)
+            early = time.time() - self.started < wifiwatch.FIRST_MINUTE
+            soon = early or watch.pending
+            self._wifi_next = now + (wifiwatch.FIRST_PERIOD if soon else wifiwatch.PERIOD)
+            for line in lines:
+                log.warning("%s", line)
+
+        self._guard("watching the WiFi", seen)
 
     def _status_signature(self) -> tuple[object, ...]:
         """What changes the status record besides its heartbeat and counters, cheaply."""

@@ -8,7 +8,7 @@ own secret is the likely culprit; when one does, that robot's.
 
 `parse_stations` reads `iw dev IFACE station dump`; `Watch` is pure (it is given the stations
 and the time) and says what to log and what the status record shows (`sdfr.records.status.Wifi`);
-`station_dump` runs `iw`.
+`station_dump` runs `iw` (the discovery layer calls it in a thread, off its event loop).
 """
 
 from __future__ import annotations
@@ -131,8 +131,7 @@ def watch_for(cfg: Config) -> Watch | None:
     wireless interface, wifi not off, a secret configured), else None."""
     from sdfr.host import wifi
 
-    secret = cfg.wifi_secret is not None or cfg.wifi_secret_file is not None
-    if cfg.iface is None or cfg.wifi == "off" or not secret or not wifi.is_wireless(cfg.iface):
+    if cfg.iface is None or not cfg.wifi_wanted or not wifi.is_wireless(cfg.iface):
         return None
     return Watch(cfg.iface, wifi.ssid_for(cfg.fleet), cfg.wifi_mode)
 

@@ -74,3 +74,40 @@ async def test_a_start_that_fails_is_never_reported_up(cfg: Config, store: Store
             sock.close()
     status, health = await _health(cfg, store)
     assert (status, health["discovery"]) == (503, "starting"), health
+
+
+@aio
+async def test_a_slow_look_at_the_wifi_never_holds_back_the_discovery_loop(
+    cfg: Config, store: Store, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`iw station dump` runs in a thread: while it takes 1.5 s the layer's event loop goes on
+    (beacons, answers, the API's status), and what it found then reaches the status record."""
+    import time
+
+    from sdfr.host import wifiwatch
+
+    def slow_dump(iface: str, timeout: float = 5.0) -> dict[str, wifiwatch.Station]:
+        time.sleep(1.5)
+        return {"02:00:00:00:00:09": wifiwatch.Station("02:00:00:00:00:09", False)}
+
+    monkeypatch.setattr(wifiwatch, "station_dump", slow_dump)
+    cfg = replace(cfg, port=_free_udp_port(), describe=f"127.0.0.1:{free_port()}")
+    layer = DiscoveryLayer(cfg, store)
+    layer.wifi = wifiwatch.Watch("lo", "sdfr-7", "ibss")
+    task = asyncio.create_task(layer.run())
+    try:
+        await asyncio.sleep(0.2)
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.05, layer._watch_wifi)  # (as the layer's periodic duties call it)
+        loop.call_later(0.1, layer._watch_wifi)  # one look at a time: this one starts none
+        worst, deadline = 0.0, time.monotonic() + 10
+        while layer.wifi_state is None and time.monotonic() < deadline:
+            before = time.monotonic()
+            await asyncio.sleep(0.01)
+            worst = max(worst, time.monotonic() - before - 0.01)
+        assert layer.wifi_state is not None, "the look never ended"
+        assert layer.wifi_state.authorized == 0
+        assert worst < 0.5, f"the loop was held back {worst:.2f} s while iw ran"
+    finally:
+        layer._stopping.set()
+        await asyncio.wait_for(task, 10)
