@@ -9,10 +9,10 @@ from __future__ import annotations
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
 
 from netlab.analysis import natural_order
 from netlab.truth import Pair
+from sdfr.records.schema import Neighbor, PeerJson
 
 __all__ = [
     "MAX_PROBLEMS",
@@ -41,17 +41,11 @@ class PeerEntry:
     indicator: float | None = None
 
     @classmethod
-    def from_json(cls, obj: Mapping[str, Any]) -> PeerEntry:
-        ind = obj.get("indicator")
-        return cls(
-            robot_id=str(obj.get("robot_id", "?")),
-            reachable=bool(obj.get("reachable", True)),
-            address=str(obj.get("address") or ""),
-            services=frozenset(
-                str(s.get("name")) for s in obj.get("services") or () if isinstance(s, Mapping)
-            ),
-            indicator=float(ind) if isinstance(ind, int | float) else None,
-        )
+    def of(cls, peer: Neighbor | PeerJson) -> PeerEntry:
+        """The entry of a neighbour (``GET /neighbors``) or of a robot of the history map
+        (``GET /history``), as the API's schema decodes them."""
+        names = frozenset(s.name for s in peer.services)
+        return cls(peer.robot_id, peer.reachable, peer.address, names, peer.indicator)
 
 
 @dataclass(frozen=True, slots=True)

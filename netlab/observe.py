@@ -12,8 +12,10 @@ Times are UNIX seconds (``time.time()``), the clock of the pcaps and the report.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Protocol
+
+import msgspec
 
 from netlab.analysis import natural_order
 from netlab.clock import REAL, Clock
@@ -21,6 +23,7 @@ from netlab.judging import PeerEntry, View
 from netlab.samples import Sample
 from netlab.truth import TruthLog
 from sdfr.errors import ApiError
+from sdfr.records.schema import Neighbor, PeerJson
 
 __all__ = ["ClientLike", "Observer", "Probe"]
 
@@ -61,11 +64,16 @@ class Probe:
 
     def neighbours(self, robots: Iterable[str]) -> dict[str, View]:
         """Each robot's reachable neighbours."""
-        return {r: self._ask(r, lambda c: c.neighbors()) for r in robots}
+        return {
+            r: self._ask(r, lambda c: msgspec.convert(c.neighbors(), list[Neighbor]))
+            for r in robots
+        }
 
     def histories(self, robots: Iterable[str]) -> dict[str, View]:
         """Each robot's history map: every robot it ever heard."""
-        return {r: self._ask(r, lambda c: c.history()) for r in robots}
+        return {
+            r: self._ask(r, lambda c: msgspec.convert(c.history(), list[PeerJson])) for r in robots
+        }
 
     def addresses(self, robots: Iterable[str]) -> dict[str, str]:
         """Each robot's own address (``GET /self``): "" before it has one, or "error: ..."."""
@@ -77,12 +85,16 @@ class Probe:
                 out[robot] = f"error: {exc}"
         return out
 
-    def _ask(self, robot: str, call: Callable[[ClientLike], list[dict[str, Any]]]) -> View:
+    def _ask(self, robot: str, call: Callable[[ClientLike], Sequence[Neighbor | PeerJson]]) -> View:
+        """`call`'s answer, decoded by the API's schema (`sdfr.records.schema`), as a View; a
+        robot that cannot be asked, or answers what the schema does not allow, an error."""
         try:
             found = call(self.client(robot))
         except ApiError as exc:
             return View(error=str(exc))
-        return View(tuple(PeerEntry.from_json(e) for e in found if isinstance(e, Mapping)))
+        except msgspec.ValidationError as exc:
+            return View(error=f"its answer does not match the API's schema: {exc}")
+        return View(tuple(PeerEntry.of(peer) for peer in found))
 
     def close(self) -> None:
         for client in self._clients.values():

@@ -9,14 +9,17 @@ import os
 import threading
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
+import msgspec
 import pytest
 
 from netlab.errors import LabStateError
 from netlab.ranges import Pos, Topology
 from netlab.scenario import Backend, LabSpec
 from sdfr.errors import ApiError
+from sdfr.records.model import ServiceOutput
+from sdfr.records.schema import Neighbor, PeerJson
 
 
 class FakeRobot:
@@ -162,7 +165,12 @@ class FakeClient:
         self.robot = robot
 
     def _entry(self, peer: str, reachable: bool) -> dict[str, Any]:
-        services = [{"name": n} for n in self.lab.services[peer].values()]
+        """`peer` as sdfrd's API shows it: a history map's robot (`PeerJson`); a neighbour
+        list's entries are the same less the fields only the history has."""
+        services = [
+            ServiceOutput(id=sid, name=name, type="sensor.fake", url=None, attributes={})
+            for sid, name in self.lab.services[peer].items()
+        ]
         address = f"10.1.0.{list(self.lab.robots).index(peer) + 1}"
         # The indicator: the medium's round-trip delivery (+ a test's bias); half of it once
         # the peer is gone (its last pings were lost).
@@ -172,16 +180,27 @@ class FakeClient:
         if there is not None and back is not None:
             ind = (1 - there / 100) * (1 - back / 100) + self.lab.bias.get((self.robot, peer), 0)
             ind = ind if reachable else ind / 2
-        return {
-            "robot_id": peer,
-            "reachable": reachable,
-            "address": address,
-            "services": services,
-            "indicator": ind,
-        }
+        entry = PeerJson(
+            robot_id=peer,
+            address=address,
+            location=f"http://{address}:8701/description.json",
+            reachable=reachable,
+            indicator=ind,
+            rtt_ms=None if ind is None else 1.0,
+            boot_id=1,
+            version=len(services),
+            first_seen=0.0,
+            last_seen=0.0,
+            services=services,
+        )
+        return cast(dict[str, Any], msgspec.to_builtins(entry))
 
     def neighbors(self, include_unreachable: bool = False) -> list[dict[str, Any]]:
-        return [self._entry(p, True) for p in sorted(self.lab.listing(self.robot))]
+        return [self._neighbor(p) for p in sorted(self.lab.listing(self.robot))]
+
+    def _neighbor(self, peer: str) -> dict[str, Any]:
+        fields = {f.name for f in msgspec.structs.fields(Neighbor)}
+        return {k: v for k, v in self._entry(peer, True).items() if k in fields}
 
     def history(self) -> list[dict[str, Any]]:
         now = self.lab.listing(self.robot)

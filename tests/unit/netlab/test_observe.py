@@ -290,3 +290,41 @@ within = 1
         loads(text.replace('per = "30 s"', 'per = "30 s"\nwithin = 1'))
     with pytest.raises(ScenarioError, match="indicator check needs within"):
         loads(text.replace('tolerance = 0.2\nwithin = "1 beacon"', "tolerance = 0.2"))
+
+
+def test_a_robot_s_answer_is_read_by_the_api_s_schema() -> None:
+    """What a robot lists is decoded by the API's own schema (`sdfr.records.schema`), one
+    definition for sdfrd and netlab: a well-formed answer becomes entries, and one that breaks
+    the schema is an error naming the field, not a guess."""
+    from typing import Any
+
+    from netlab.observe import Probe
+
+    good = {
+        "robot_id": "r2",
+        "address": "10.1.0.2",
+        "reachable": True,
+        "indicator": 0.9,
+        "rtt_ms": 1.5,
+        "last_seen": 1.0,
+        "services": [
+            {"id": "s1", "name": "camera", "type": "sensor.camera", "url": None, "attributes": {}}
+        ],
+    }
+
+    class Answers:
+        def __init__(self, entries: list[dict[str, Any]]) -> None:
+            self.entries = entries
+
+        def neighbors(self, include_unreachable: bool = False) -> list[dict[str, Any]]:
+            return self.entries
+
+        def close(self) -> None:
+            pass
+
+    answers = {"r1": Answers([good]), "r3": Answers([{**good, "reachable": "yes"}])}
+    views = Probe(lambda robot: answers[robot]).neighbours(["r1", "r3"])  # type: ignore[arg-type,return-value]
+    assert views["r1"].entries == (PeerEntry("r2", True, "10.1.0.2", frozenset({"camera"}), 0.9),)
+    assert views["r3"].entries == ()
+    error = views["r3"].error or ""
+    assert "does not match the API's schema" in error and "reachable" in error, error
