@@ -10,9 +10,11 @@ import time
 from collections.abc import Callable
 from datetime import datetime
 
-#: A message (its template, logger and level) repeated within this many seconds is counted, not
-#: written again.
+#: A kind of message (its template, logger and level) is written at most REPEAT_DISTINCT times
+#: in this many seconds, each time saying something new (its arguments differ); the rest of
+#: the window's are counted, not written.
 REPEAT_WINDOW = 60.0
+REPEAT_DISTINCT = 5
 #: The formats of `--log-format`.
 FORMATS = ("text", "json")
 #: The attribute of a record (`extra={FIELDS: {...}}`) that carries its structured fields: a
@@ -21,16 +23,37 @@ FORMATS = ("text", "json")
 FIELDS = "fields"
 
 
-class RepeatFilter(logging.Filter):
-    """Lets the first of a kind of message through, then one a REPEAT_WINDOW at most, saying
-    how many were held back: an error that recurs on every datagram or every accept (a full
-    disk, no file descriptors left) must not fill the disk with the log."""
+class _Kind:
+    """A kind of message in its current window: when the window began, the messages let
+    through in it, and how many were held back."""
 
-    def __init__(self, window: float = REPEAT_WINDOW, clock: Callable[[], float] = time.monotonic):
+    __slots__ = ("held", "said", "since")
+
+    def __init__(self, since: float, text: str) -> None:
+        self.since = since
+        self.said = {text}
+        self.held = 0
+
+
+class RepeatFilter(logging.Filter):
+    """Lets a kind of message through at most `distinct` times a `window`, each one saying
+    something the window's earlier ones did not (an address that changed, another robot);
+    the rest are counted, and the first let through after the window says how many were held
+    back. An error that recurs on every datagram or every accept (a full disk, no file
+    descriptors left), even with a new detail each time, must not fill the disk with the log;
+    two different addresses taken within a minute must both be told."""
+
+    def __init__(
+        self,
+        window: float = REPEAT_WINDOW,
+        clock: Callable[[], float] = time.monotonic,
+        distinct: int = REPEAT_DISTINCT,
+    ):
         super().__init__()
         self.window = window
         self.clock = clock
-        self._seen: dict[tuple[int | None, str, int, str], tuple[float, int]] = {}
+        self.distinct = distinct
+        self._seen: dict[tuple[int | None, str, int, str], _Kind] = {}
 
     def forget_thread(self, ident: int) -> None:
         """A layer starts (again) as thread `ident` (which a new thread may reuse): it logs its
@@ -42,16 +65,25 @@ class RepeatFilter(logging.Filter):
             return True
         # Each thread's own (a layer's thread forgets its kinds when it starts: `setup`).
         key = (record.thread, record.name, record.levelno, str(record.msg))
+        try:
+            text = record.getMessage()
+        except Exception:  # (arguments that do not fit: the handler will say so)
+            text = str(record.msg)
         now = self.clock()
-        last = self._seen.get(key)
-        if last is not None and now - last[0] < self.window:
-            self._seen[key] = (last[0], last[1] + 1)
-            return False
-        if last is not None and last[1]:
-            record.msg = f"{record.msg} ({last[1]} more like this in the last {self.window:.0f} s)"
+        kind = self._seen.get(key)
+        if kind is not None and now - kind.since < self.window:
+            if text in kind.said or len(kind.said) >= self.distinct:
+                kind.held += 1
+                return False
+            kind.said.add(text)
+            return True
+        if kind is not None and kind.held:
+            record.msg = (
+                f"{record.msg} ({kind.held} more like this in the last {self.window:.0f} s)"
+            )
         if len(self._seen) > 1000:  # forget kinds of message not seen for a while
-            self._seen = {k: v for k, v in self._seen.items() if now - v[0] < self.window}
-        self._seen[key] = (now, 0)
+            self._seen = {k: v for k, v in self._seen.items() if now - v.since < self.window}
+        self._seen[key] = _Kind(now, text)
         return True
 
 

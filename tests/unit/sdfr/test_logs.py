@@ -13,7 +13,7 @@ import pytest
 
 from sdfr.config.load import from_args, to_args
 from sdfr.daemon import logs
-from sdfr.daemon.logs import RepeatFilter
+from sdfr.daemon.logs import REPEAT_DISTINCT, RepeatFilter
 from sdfr.errors import ConfigError
 
 
@@ -21,7 +21,7 @@ def record(msg: str, *args: object, level: int = logging.ERROR) -> logging.LogRe
     return logging.LogRecord("sdfr.x", level, __file__, 1, msg, args, None)
 
 
-def test_a_flood_of_one_error_is_one_line_a_minute() -> None:
+def test_a_flood_of_one_error_is_a_few_lines_a_minute() -> None:
     now = [0.0]
     f = RepeatFilter(window=60.0, clock=lambda: now[0])
     passed = []
@@ -30,13 +30,31 @@ def test_a_flood_of_one_error_is_one_line_a_minute() -> None:
         rec = record("accept failed: %s", f"Too many open files ({i})")
         if f.filter(rec):
             passed.append(rec.getMessage())
-    # 70.8 s of errors: the first, and one after the window that says how many were held.
-    assert len(passed) == 2
-    assert "more like this in the last 60 s" in passed[1]
-    assert passed[1].startswith("accept failed: Too many open files")
+    # 70.8 s of errors, 1770 of them: five a window (each says something new); the first of
+    # the second window says how many the first held back.
+    assert len(passed) == 2 * REPEAT_DISTINCT
+    first = passed[REPEAT_DISTINCT]
+    assert first.startswith("accept failed: Too many open files")
+    assert first.endswith("(1495 more like this in the last 60 s)")
+    assert sum("more like this" in line for line in passed) == 1
     # Other messages, levels and loggers are not held back by it.
     assert f.filter(record("another thing"))
     assert f.filter(record("accept failed: %s", "x", level=logging.WARNING))
+
+
+def test_a_message_that_says_something_new_is_not_held_back_as_a_repeat() -> None:
+    """Two addresses taken within a minute are both told; the same line again is held."""
+    now = [0.0]
+    f = RepeatFilter(window=60.0, clock=lambda: now[0])
+    lines = ["addressing: %s is ours", "addressing: %s is ours", "addressing: %s is ours"]
+    args = ["10.1.0.4", "10.1.0.9", "10.1.0.9"]
+    passed = []
+    for msg, arg in zip(lines, args, strict=True):
+        now[0] += 1.0
+        rec = record(msg, arg, level=logging.INFO)
+        if f.filter(rec):
+            passed.append(rec.getMessage())
+    assert passed == ["addressing: 10.1.0.4 is ours", "addressing: 10.1.0.9 is ours"]
 
 
 def _isolated_root() -> tuple[list[logging.Handler], int]:
