@@ -207,10 +207,13 @@ class Genl:
 
 @dataclass(frozen=True, slots=True)
 class Radio:
-    """One hwsim radio: its id (the kernel's index) and its name (its phy's name)."""
+    """One hwsim radio: its id (the kernel's index), its name (its phy's name) and, once
+    read (`adopt`), the address hwsim knows it by: its permanent address with the 0x40 bit
+    of the first octet set, which a medium names it with (`netlab.airmedium`)."""
 
     id: int
     name: str
+    address: str = ""
 
 
 class Hwsim(Genl):
@@ -285,15 +288,34 @@ def _iw(argv: Sequence[str], doing: str, ns: str | None = None) -> None:
         )
 
 
+def perm_address(phy: str, sys_phy: Path = SYS_PHY) -> str:
+    """Radio `phy`'s permanent address, as this process's namespace sees it in sysfs."""
+    with kernel_errors(f"reading the address of radio {phy}"):
+        return (sys_phy / phy / "macaddress").read_text().strip()
+
+
+def hwsim_address(perm: str) -> str:
+    """The address hwsim knows a radio by (its second address): the permanent one with the
+    0x40 bit of the first octet set."""
+    first, _, rest = perm.partition(":")
+    try:
+        value = int(first, 16)
+    except ValueError:
+        raise NetlabError(f"not a MAC address: {perm!r}") from None
+    return f"{value | 0x40:02x}:{rest}"
+
+
 def adopt(hw: Hwsim, name: str, ns: str) -> tuple[Radio, str]:
-    """A new radio named `name` moved into namespace `ns`: the radio and its interface's name
-    (the kernel's `wlanN`, unique on the machine: wpa_supplicant's control sockets, under
-    one /run for every namespace, are named after it)."""
+    """A new radio named `name` moved into namespace `ns`: the radio (with its hwsim
+    address) and its interface's name (the kernel's `wlanN`, unique on the machine:
+    wpa_supplicant's control sockets, under one /run for every namespace, are named after
+    it)."""
     radio = hw.new_radio(name)
     try:
         ifaces = phy_interfaces(name)
         if len(ifaces) != 1:
             raise NetlabError(f"hwsim radio {name!r} has interfaces {ifaces}, not one")
+        radio = Radio(radio.id, radio.name, hwsim_address(perm_address(name)))
         _iw(["phy", name, "set", "netns", "name", ns], f"moving radio {name} into {ns}")
     except BaseException:
         hw.remove_radio(name)
