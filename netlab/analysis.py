@@ -12,7 +12,8 @@ Senders are named by the robot id in the datagram; receivers by their capture's 
 robot whose datagrams that capture sent (falling back to the capture's label).
 
 Sizes: ``payload_bytes`` sums the UDP payloads, ``frame_bytes`` the whole frames as captured
-(see `netlab.pcap`); 1 kB = 1000 bytes.  ARP is counted apart (`arp_counts`).
+(see `netlab.pcap`); 1 kB = 1000 bytes.  ARP is counted apart (`arp_counts`), and so is what a
+radio medium put on the air (`air_use`: 802.11 management, control, EAPOL and data frames).
 """
 
 from __future__ import annotations
@@ -23,14 +24,16 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from netlab.pcap import ARP, RX, SDFR, TX, Record
+from netlab.pcap import ARP, EAPOL, RX, SDFR, TX, WIFI_CTRL, WIFI_KINDS, WIFI_MGMT, Record
 
 __all__ = [
+    "AIR_KINDS",
     "ArpCounts",
     "PingTally",
     "RobotTraffic",
     "Series",
     "Totals",
+    "air_use",
     "arp_counts",
     "arp_counts_by_sender",
     "capture_owners",
@@ -390,3 +393,53 @@ def _sorted(items: Mapping[str, _T]) -> dict[str, _T]:
 def natural_order(keys: Sequence[str]) -> list[str]:
     """Robot names in human order (r2 before r10)."""
     return sorted(keys, key=_natural)
+
+
+# ---------------------------------------------------------------------------------------------
+# The air of a radio medium
+
+#: What `air_use` counts apart: 802.11's frame types, EAPOL (the key handshake) out of data.
+AIR_KINDS = ("management", "control", "eapol", "data")
+
+
+def _air_kind(kind: str) -> str:
+    return {WIFI_MGMT: "management", WIFI_CTRL: "control", EAPOL: "eapol"}.get(kind, "data")
+
+
+def air_use(records: Iterable[Record], robots: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """What went on the air of a radio medium, in frames and bytes of 802.11 frames: in all,
+    by kind (`AIR_KINDS`) and by transmitter.
+
+    Only captures holding 802.11 frames count (a radio lab's medium capture, where each frame
+    is seen once); their data frames are SDfR's datagrams among others, encrypted.  A
+    transmitter is named by `robots` (radio MAC -> robot), else by its MAC; frames with no
+    transmitter address (ACKs, CTS) are counted under "".  Empty when no capture has 802.11
+    frames (a wired lab).
+    """
+    recs = list(records)
+    air = {r.capture for r in recs if r.kind in WIFI_KINDS}
+    names = {mac.lower(): robot for mac, robot in (robots or {}).items()}
+
+    def tally() -> dict[str, Any]:
+        return {
+            "frames": 0,
+            "bytes": 0,
+            "by_kind": {k: {"frames": 0, "bytes": 0} for k in AIR_KINDS},
+        }
+
+    out = tally()
+    by_sender: dict[str, dict[str, Any]] = {}
+    for r in recs:
+        if r.capture not in air:
+            continue
+        sender = names.get(r.src_mac, r.src_mac)
+        kind = _air_kind(r.kind)
+        for t in (out, by_sender.setdefault(sender, tally())):
+            t["frames"] += 1
+            t["bytes"] += r.frame_len
+            t["by_kind"][kind]["frames"] += 1
+            t["by_kind"][kind]["bytes"] += r.frame_len
+    if not air:
+        return {}
+    out["by_transmitter"] = {k: by_sender[k] for k in natural_order(list(by_sender))}
+    return out

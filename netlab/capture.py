@@ -110,6 +110,32 @@ class CaptureInfo:
         )
 
 
+#: mac80211_hwsim's monitor interface, in the initial namespace: every frame any of its radios
+#: sends, with a radiotap header.
+AIR_MONITOR = "hwsim0"
+
+
+def air_monitor() -> str:
+    """Bring hwsim's monitor interface up (the radio medium's capture point); its name.
+    CaptureError if there is none (mac80211_hwsim is not loaded)."""
+    try:
+        res = subprocess.run(
+            ["ip", "link", "set", AIR_MONITOR, "up"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            stdin=subprocess.DEVNULL,
+        )
+    except (OSError, subprocess.SubprocessError) as exc:
+        raise CaptureError(f"cannot bring {AIR_MONITOR} up: {exc}") from None
+    if res.returncode != 0:
+        raise CaptureError(
+            f"cannot capture on the air: no {AIR_MONITOR} ({res.stderr.strip()}); is "
+            "mac80211_hwsim loaded?"
+        )
+    return AIR_MONITOR
+
+
 def sidecar_path(pcap: Path) -> Path:
     """Where the metadata of the capture written to `pcap` lives: ``<pcap>.json``."""
     return pcap.with_name(pcap.name + ".json")
@@ -386,7 +412,11 @@ class Capture:
             netns=self.netns,
             iface=self.iface,
             label=self.label,
-            role="medium" if kind == "bridge" else "robot",
+            # A bridge (the wired medium) or hwsim's monitor (the radio medium, radiotap)
+            # sees every frame once; a robot's interface, its own.
+            role="medium"
+            if kind == "bridge" or "radiotap" in link.get("link_type", "")
+            else "robot",
             mac=link.get("address") if link.get("link_type") == "ether" else None,
             addresses=[
                 f"{a['local']}/{a['prefixlen']}"

@@ -10,6 +10,16 @@ Sizes.  ``payload_len`` is the UDP payload (the SDfR datagram, as the daemon see
 ``frame_len`` the whole Ethernet frame as captured (Ethernet + IP + UDP headers + payload, no
 preamble or FCS).
 
+The air.  A radio lab's medium capture (``hwsim0``: every 802.11 frame any radio sent, with
+a radiotap header) has frames an Ethernet capture never sees: management (beacons, probes,
+SAE authentication, mesh peering), control (ACKs) and data frames encrypted with the fleet's
+key, whose payload cannot be read (kinds "wifi-mgmt", "wifi-ctrl", "wifi-data"), and EAPOL
+(the WPA2 handshake, kind "eapol"); ``msg_type`` is the frame's subtype ("Beacon", "Ack").
+A data frame that is not encrypted is read through to its IP datagram like an Ethernet one.
+For these ``src_mac`` is the transmitter (802.11's address 2; none for an ACK), ``dst_mac``
+the receiver (address 1), and ``frame_len`` the 802.11 frame (header and body, without the
+radiotap header, which is not on the air, and without the PHY's preamble).
+
 Times are the capture's timestamps: UNIX seconds (``time.time()`` clock).
 """
 
@@ -28,10 +38,15 @@ from netlab.errors import NetlabError
 
 __all__ = [
     "ARP",
+    "EAPOL",
     "OTHER",
     "RX",
     "SDFR",
     "TX",
+    "WIFI_CTRL",
+    "WIFI_DATA",
+    "WIFI_KINDS",
+    "WIFI_MGMT",
     "PcapError",
     "Record",
     "capture_infos",
@@ -42,6 +57,12 @@ __all__ = [
 SDFR = "sdfr"
 ARP = "arp"
 OTHER = "other"
+WIFI_MGMT = "wifi-mgmt"
+WIFI_CTRL = "wifi-ctrl"
+WIFI_DATA = "wifi-data"  # encrypted (or without a payload): not readable here
+EAPOL = "eapol"
+#: The kinds only an 802.11 capture has.
+WIFI_KINDS = (WIFI_MGMT, WIFI_CTRL, WIFI_DATA, EAPOL)
 TX = "tx"
 RX = "rx"
 
@@ -57,7 +78,7 @@ class Record:
     time: float
     capture: str  # label of the capture it comes from
     direction: str  # "tx", "rx", or "" (medium capture, or direction unknown)
-    kind: str  # "sdfr", "arp" or "other"
+    kind: str  # "sdfr", "arp", "other", or one of WIFI_KINDS
     src_mac: str
     dst_mac: str
     src: str  # IP source; for ARP the sender protocol address
@@ -67,7 +88,7 @@ class Record:
     payload_len: int = 0  # UDP payload (0 for ARP)
     sport: int | None = None
     dport: int | None = None
-    msg_type: str = ""  # sdfr_layer.MSG_TYPES for "sdfr"; "ARP" for "arp"
+    msg_type: str = ""  # sdfr_layer.MSG_TYPES for "sdfr"; "ARP" for "arp"; 802.11's subtype
     robot: str | None = None  # the sender's robot id (SDfR header)
     fleet: int | None = None
     boot: int | None = None
@@ -181,8 +202,13 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
 
     t = float(pkt.time)
     frame_len = int(pkt.wirelen or len(pkt))
-    src_mac = str(getattr(pkt, "src", "") or "").lower() if _is_ether(pkt) else ""
-    dst_mac = str(getattr(pkt, "dst", "") or "").lower() if _is_ether(pkt) else ""
+    air = _dot11(pkt)
+    if air is not None:
+        frame_len -= int(pkt.len or 0)  # the radiotap header: the capture's, not the air's
+        src_mac, dst_mac = str(air.addr2 or "").lower(), str(air.addr1 or "").lower()
+    else:
+        src_mac = str(getattr(pkt, "src", "") or "").lower() if _is_ether(pkt) else ""
+        dst_mac = str(getattr(pkt, "dst", "") or "").lower() if _is_ether(pkt) else ""
     direction = "" if own_mac is None or not src_mac else TX if src_mac == own_mac else RX
 
     def make(**kw: Any) -> Record:
@@ -196,6 +222,11 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
             **kw,
         )
 
+    wifi = _wifi_kind(pkt, air) if air is not None else None
+    if wifi is not None:
+        group = bool(dst_mac) and int(dst_mac[:2], 16) & 1 == 1
+        subtype = str(air.sprintf("%Dot11.subtype%"))
+        return make(kind=wifi, src="", dst="", multicast=group, msg_type=subtype)
     if ArpLayer in pkt:
         arp = pkt[ArpLayer]
         return make(
@@ -241,6 +272,32 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
         ping=view.get("ping"),
         reason=view.get("reason"),
     )
+
+
+def _dot11(pkt: Any) -> Any:
+    """The 802.11 frame of a radiotap record, else None."""
+    from scapy.layers.dot11 import Dot11, RadioTap
+
+    return pkt.getlayer(Dot11) if isinstance(pkt, RadioTap) else None
+
+
+def _wifi_kind(pkt: Any, air: Any) -> str | None:
+    """The kind of an 802.11 frame; None for a data frame in the clear that carries IP or
+    ARP (read on like an Ethernet frame)."""
+    from scapy.layers.eap import EAPOL as EapolLayer
+    from scapy.layers.inet import IP
+    from scapy.layers.inet6 import IPv6
+    from scapy.layers.l2 import ARP as ArpLayer
+
+    if air.type == 0:
+        return WIFI_MGMT
+    if air.type != 2:  # control (and the rare extension frames)
+        return WIFI_CTRL
+    if EapolLayer in pkt:
+        return EAPOL
+    if air.FCfield.protected or not (IP in pkt or IPv6 in pkt or ArpLayer in pkt):
+        return WIFI_DATA
+    return None
 
 
 def _is_ether(pkt: Any) -> bool:

@@ -89,6 +89,9 @@ def write_report(
     }
     if differences:  # the paper's figures go beside a run's only under the paper's conditions
         del report["traffic"]["paper_5_min_kB"]
+    air = analysis.air_use(recs, _radio_owners(recs, infos))
+    if air:
+        report["air"] = air
     if conn:
         report["connectivity"] = _connectivity_summary(conn)
     if agree:
@@ -172,6 +175,16 @@ def _captures(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[
     for c in out.values():
         c.setdefault("role", "robot" if c["tx"] or c["rx"] else "unknown")
     return {k: out[k] for k in analysis.natural_order(list(out))}
+
+
+def _radio_owners(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[str, str]:
+    """A robot capture's interface MAC -> its robot: who sent what on the air."""
+    owners = analysis.capture_owners(recs)
+    return {
+        info.mac: owners.get(label, label)
+        for label, info in infos.items()
+        if info.mac and info.role != "medium"
+    }
 
 
 def _capture_entry(robot: str | None) -> dict[str, object]:

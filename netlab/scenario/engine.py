@@ -151,10 +151,14 @@ class Run:
         mode = self.sc.capture
         if mode == "none":
             return []
-        from netlab.capture import Capture, start_all
+        from netlab.capture import Capture, air_monitor, start_all
 
         caps: list[Capture] = []
-        if mode in ("all", "medium"):
+        if mode in ("all", "medium") and self.sc.medium == "radio":
+            # Every 802.11 frame, management, control and EAPOL too: what the air carried.
+            pcap = self.run_dir / "air.pcap"
+            caps.append(Capture(None, air_monitor(), pcap, label="air", bpf=""))
+        elif mode in ("all", "medium"):
             pcap = self.run_dir / "medium.pcap"
             caps.append(Capture(self.lab.medium.ns, naming.BRIDGE, pcap, label="medium"))
         if mode in ("all", "robots"):
