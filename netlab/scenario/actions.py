@@ -54,7 +54,8 @@ def acts(
 def start(ctx: StepContext, step: Start) -> str:
     names = ctx.fleet.names(step.robots)
     t = ctx.clock.monotonic()
-    ctx.lab.start_all(names, timeout=max(60.0, 2.0 * len(names)), **ctx.options(step))
+    limit = max(60.0, 2.0 * len(names)) if step.within is None else ctx.seconds(step.within)
+    ctx.lab.start_all(names, timeout=limit, **ctx.options(step))
     ctx.fleet.started(names)
     took = ctx.clock.monotonic() - t
     return f"start {ctx.text(names)}: sdfrd healthy on {len(names)} in {took:.2f} s"

@@ -51,15 +51,20 @@ class Step:
 @dataclass(frozen=True)
 class Start(Step):
     """Start sdfrd on `robots` (all at once), with the scenario's beacon and sdfrd options
-    plus `options` (sdfrd flags without dashes: ``{"miss_limit": 3}``); wait until healthy."""
+    plus `options` (sdfrd flags without dashes: ``{"miss_limit": 3}``); wait until healthy,
+    for at most `within` (default: 60 s, or 2 s a robot if more; a radio robot joins the
+    fleet's WiFi before it is healthy, slow in an emulated VM)."""
 
     robots: Robots = "all"
     options: Mapping[str, Any] = field(default_factory=dict)
+    within: Span | None = None
     kind: ClassVar[str] = "start"
 
     def _validate(self, selectors: Selectors) -> None:
         check_field("robots", lambda: selectors.robots(self.robots))
         check_field("options", lambda: check_options(self.options))
+        if self.within is not None:
+            check_field("within", lambda: Duration.of(self.within or 0))
 
 
 @dataclass(frozen=True)
