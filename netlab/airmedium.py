@@ -360,6 +360,7 @@ class Medium:
         self.rng = random.Random(seed)
         self.table = LinkTable()
         self.iface: dict[bytes, str] = {}  # an interface's address -> its robot
+        self.radio_of: dict[str, bytes] = {}  # robot -> its radio's hwsim address
         self._seen: tuple[int, int] | None = None
         self._looked = 0.0
         self._written = 0.0
@@ -373,6 +374,9 @@ class Medium:
             "send_errors": 0,
             "reloads": 0,
         }
+        #: Frames each robot's radio sent, and copies each received.
+        self.sent: dict[str, int] = {}
+        self.received: dict[str, int] = {}
         self.started = time.monotonic()
         self.cpu0 = time.process_time()
 
@@ -392,6 +396,7 @@ class Medium:
         table = read_links(self.links_path)
         self._seen = seen
         self.table = table
+        self.radio_of = {r: a for a, r in table.radios.items()}
         for addr, robot in table.radios.items():
             self.iface.setdefault(mac_bytes(perm_address(mac_text(addr))), robot)
         self.counts["reloads"] += 1
@@ -410,6 +415,7 @@ class Medium:
         if sender is None:
             self.counts["unknown_sender"] += 1
         else:
+            self.sent[sender] = self.sent.get(sender, 0) + 1
             ta = address2(tx.frame)
             if ta is not None:
                 self.iface[ta] = sender
@@ -419,9 +425,9 @@ class Medium:
         dest = None if group or dest_addr is None else self.iface.get(dest_addr)
         robots = self.table.radios.values()
         result = fate(sender, dest, group, tx.rates, self.table.links, robots, self.rng)
-        by_robot = {r: a for a, r in self.table.radios.items()}
         for robot, rate in result.receivers:
-            self._send(hwsim.CMD_FRAME, rx_payload(by_robot[robot], tx, rate))
+            self.received[robot] = self.received.get(robot, 0) + 1
+            self._send(hwsim.CMD_FRAME, rx_payload(self.radio_of[robot], tx, rate))
         self.counts["delivered"] += len(result.receivers)
         self.counts["acked"] += result.acked
         self._send(hwsim.CMD_TX_INFO_FRAME, status_payload(tx, result.acked, result.used))
@@ -436,6 +442,8 @@ class Medium:
             "cpu_seconds": round(cpu, 4),
             "seconds": round(time.monotonic() - self.started, 3),
             "cpu_per_frame": round(cpu / frames, 7) if frames else None,
+            "sent": dict(sorted(self.sent.items())),
+            "received": dict(sorted(self.received.items())),
             "pid": os.getpid(),
         }
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import select
 import subprocess
 import sys
 import tempfile
@@ -39,7 +40,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from netlab import cleanup, docker, hostlimits, hwsim, kernel, manifest, naming, shaping
+from netlab import airmedium, cleanup, docker, hostlimits, hwsim, kernel, manifest, naming, shaping
 from netlab.cleanup import SweepResult
 from netlab.daemons import START_TIMEOUT, STOP_TIMEOUT, SUN_PATH_MAX, LabProcesses
 from netlab.doctor import capabilities
@@ -52,12 +53,15 @@ from netlab.errors import (
     kernel_errors,
 )
 from netlab.labmedium import LabMedium
-from netlab.manifest import Manifest, RobotRecord
+from netlab.manifest import Manifest, ProcRecord, RobotRecord
 from netlab.medium import Medium
 from netlab.ranges import Pos, RangeModel, Topology
 from netlab.robots import AIRS, RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
 from netlab.shaping import LinkShape
 from sdfr.client import Client
+
+#: Seconds the radio medium may take to start and register (a Python start, under emulation).
+AIR_START_TIMEOUT = 60.0
 
 __all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "SUN_PATH_MAX", "Lab", "Robot", "RobotRef"]
 
@@ -77,8 +81,9 @@ class Lab(LabProcesses, LabMedium):
     `air` is what they meet on (a scenario's `medium`): "wired", a bridge whose rules make
     ranges, partitions and loss, or "radio", one mac80211_hwsim radio per robot on which its
     sdfrd joins the fleet's WiFi itself (the lab's random secret, `wifi_secret_file`, unless
-    told otherwise); every radio hears every other, and what needs the wired medium's rules
-    (partitions, moves, shaping) says so.
+    told otherwise); the lab's medium (`netlab.airmedium`, a process started at `up`)
+    delivers their frames by the same links as the wired rules (moves, partitions, pair
+    loss); shaping a radio link says it needs the wired medium.
     """
 
     def __init__(
@@ -107,6 +112,7 @@ class Lab(LabProcesses, LabMedium):
         #: each robot a mac80211_hwsim radio, and sdfrd joins the fleet's WiFi on it.
         self.air = air
         self._hwsim: hwsim.Hwsim | None = None
+        self._radio_addrs: dict[str, str] = {}
         self.runtime = runtime
         self.image = image
         self._kinds: dict[str, RobotKind] = {}
@@ -208,6 +214,7 @@ class Lab(LabProcesses, LabMedium):
             if self.air == "radio":
                 self._hwsim = hwsim.Hwsim()
                 _write_secret(self.wifi_secret_file, os.urandom(24).hex())
+                self._start_air()
         except LabExistsError:
             # The leftovers are not ours to touch: release the name, leave them for `down`.
             manifest.remove(self.name)
@@ -316,7 +323,47 @@ class Lab(LabProcesses, LabMedium):
         self.medium.open()
         if self.air == "radio":
             self._hwsim = hwsim.Hwsim()
+            table = airmedium.read_links(self.air_links_file)
+            self._radio_addrs = {r: airmedium.mac_text(a) for a, r in table.radios.items()}
         self._state = "up"
+
+    def _start_air(self) -> None:
+        """Start the radio medium (`netlab.airmedium`), recorded as a lab process, and wait
+        until it is hwsim's medium; NetlabError with its reason if it cannot be."""
+        assert self._record is not None
+        self.air_links_file.parent.mkdir(exist_ok=True)
+        airmedium.write_links(self.air_links_file, {}, {})
+        argv = [
+            sys.executable, "-m", "netlab.airmedium", "--links", str(self.air_links_file),
+            "--stats", str(self.air_stats_file), "--seed", str(self.seed),
+        ]  # fmt: skip
+        log_path = self.air_links_file.parent / "medium.log"
+        with kernel_errors("starting the radio medium"), open(log_path, "ab") as log:
+            proc = subprocess.Popen(
+                argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
+                start_new_session=True, cwd=Path(__file__).resolve().parent.parent,
+            )  # fmt: skip
+        self._procs.append(proc)
+        self._record.processes.append(
+            ProcRecord(proc.pid, cleanup.start_time(proc.pid) or 0, "", "medium", argv)
+        )
+        self._save()
+        assert proc.stdout is not None
+        line = b""  # "registered", or nothing when it ended
+        if select.select([proc.stdout], [], [], AIR_START_TIMEOUT)[0]:
+            line = proc.stdout.readline()
+        proc.stdout.close()
+        if line.strip() != b"registered":
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=5.0)
+            said = log_path.read_text(errors="replace").strip().splitlines()
+            raise NetlabError(
+                f"lab {self.name}: the radio medium did not start "
+                f"(exit {proc.poll()}): {said[-1] if said else 'it said nothing'}"
+                if proc.poll() is not None
+                else f"lab {self.name}: the radio medium did not register within "
+                f"{AIR_START_TIMEOUT:.0f} s"
+            )
 
     def _check_up(self) -> None:
         if self._state != "up":
@@ -430,7 +477,8 @@ class Lab(LabProcesses, LabMedium):
         kernel.ipv4_only(robot.ns)  # before its link exists, so that it inherits the default
         if self._hwsim is not None:
             # The radio is named as the namespace: a sweep finds it by the lab's prefix.
-            _, iface = hwsim.adopt(self._hwsim, robot.ns, robot.ns)
+            radio, iface = hwsim.adopt(self._hwsim, robot.ns, robot.ns)
+            self._radio_addrs[robot.name] = radio.address
             robot = dataclasses.replace(robot, iface=iface)
             self._robots[robot.name] = robot
             assert self._record is not None

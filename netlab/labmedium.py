@@ -1,15 +1,17 @@
 """A lab's medium, as its robots hear it: the ranges and partitions of `netlab.ranges`
-applied through `netlab.medium` in batches, mobility, per-robot link shaping, and the truth
-of who hears whom (`links`).  A part of `Lab` (see `netlab.lab`)."""
+applied in batches, through `netlab.medium` (a wired lab's bridge) or `netlab.airmedium`
+(a radio lab's frames), mobility, per-robot link shaping, and the truth of who hears whom
+(`links`).  A part of `Lab` (see `netlab.lab`)."""
 
 from __future__ import annotations
 
 import contextlib
 import time
 from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from netlab import naming, shaping
+from netlab import airmedium, naming, shaping
 from netlab.doctor import capabilities
 from netlab.errors import NetlabError
 from netlab.medium import Medium
@@ -25,7 +27,9 @@ class LabMedium:
     topology: Topology
     medium: Medium
     air: str
+    workdir: Path
     _state: str
+    _radio_addrs: dict[str, str]  # a radio lab's robots' hwsim addresses
     _batch: int
     _robots: dict[str, Robot]
     _shapes: dict[str, LinkShape]
@@ -59,15 +63,28 @@ class LabMedium:
             self._apply_medium()
 
     def _wired(self, what: str) -> None:
-        """NetlabError for `what` on a radio lab, whose radios all hear each other."""
+        """NetlabError for `what` on a radio lab, whose links are shaped by no qdisc."""
         if self.air != "wired":
             raise NetlabError(
-                f"{what}: not on the radio medium yet, where every radio hears every other; "
+                f"{what}: not on the radio medium yet, whose links have no qdiscs; "
                 "use a wired lab (medium wired)"
             )
 
+    @property
+    def air_links_file(self) -> Path:
+        """A radio lab's links, as its medium (`netlab.airmedium`) obeys them."""
+        return self.workdir / "air" / "links.json"
+
+    @property
+    def air_stats_file(self) -> Path:
+        """A radio lab's medium's counters (frames, copies, CPU seconds), every second."""
+        return self.workdir / "air" / "stats.json"
+
     def _apply_medium(self) -> None:
-        if self.air != "wired":  # (no port on the bridge: the radios meet over the air)
+        if self.air != "wired":  # the radios' frames go through the lab's air medium
+            radios = {r: a for r, a in self._radio_addrs.items() if r in self._robots}
+            links = {p: loss for p, loss in self.topology.links().items() if set(p) <= set(radios)}
+            airmedium.write_links(self.air_links_file, radios, links)
             return
         links = with_link_loss(self.topology.links(), self._nft_loss)
         self.medium.load(links, {r.name: r.port for r in self._robots.values()})
@@ -76,10 +93,8 @@ class LabMedium:
         """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
 
         Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
-        On the radio medium every robot hears every other.
+        A radio lab's medium delivers frames by the same links.
         """
-        if self.air != "wired":
-            return {(a, b): 0.0 for a in self._robots for b in self._robots if a != b}
         link_loss = {name: shape.loss for name, shape in self._shapes.items()}
         return with_link_loss(self.topology.links(), link_loss)
 
@@ -93,21 +108,18 @@ class LabMedium:
 
     def move(self, ref: RobotRef, pos: Pos) -> None:
         self._check_up()
-        self._wired("moving a robot")
         self.topology.move(self.robot(ref).name, pos)
         self._changed()
 
     def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
         """Cut every link between `groups` (robots in none form one more group)."""
         self._check_up()
-        self._wired("a partition")
         self.topology.partition([[self.robot(r).name for r in g] for g in groups])
         self._changed()
 
     def merge(self) -> None:
         """End the partition."""
         self._check_up()
-        self._wired("a merge")
         self.topology.merge()
         self._changed()
 
@@ -116,7 +128,6 @@ class LabMedium:
     ) -> None:
         """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
         self._check_up()
-        self._wired("a pair's loss")
         self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
         self._changed()
 
@@ -131,7 +142,6 @@ class LabMedium:
     ) -> list[tuple[float, Links]]:
         """Move the model's robots every `step` seconds for `duration`; the links at each step."""
         self._check_up()
-        self._wired("mobility")
         for name in model.robots:
             self.robot(name)
         timeline: list[tuple[float, Links]] = []

@@ -1,19 +1,19 @@
 """netlab.hwsim's generic netlink codec, on bytes (the radios themselves: tests/radio), what
-the doctor says of radios, and what a radio lab refuses."""
+the doctor says of radios, what a radio lab refuses, and how its medium changes reach its
+radio medium (`netlab.airmedium`'s links file)."""
 
 from __future__ import annotations
 
 import struct
 from collections.abc import Callable
 from pathlib import Path
-from typing import cast
 
 import pytest
 
-from netlab import doctor, hwsim
+from netlab import airmedium, doctor, hwsim, naming
 from netlab.errors import NetlabError
 from netlab.labmedium import LabMedium
-from netlab.ranges import Topology
+from netlab.ranges import Topology, UnitDisc
 from netlab.robots import Robot, RobotRef
 
 
@@ -69,39 +69,62 @@ def test_the_doctor_says_why_radio_labs_cannot_run(tmp_path: Path) -> None:
 
 
 class _RadioMedium(LabMedium):
-    """The medium part of a radio lab, alone (its lab is up, robots r1 and r2)."""
+    """The medium part of a radio lab, alone (its lab is up, robots r1 and r2 at 0, 0)."""
 
-    def __init__(self) -> None:
+    def __init__(self, workdir: Path) -> None:
         self.air, self._state, self._batch = "radio", "up", 0
-        self.topology = Topology()
+        self.workdir = workdir
+        (workdir / "air").mkdir()
+        self.topology = Topology(UnitDisc(10.0))
         self._robots = {}
+        self._radio_addrs = {"r1": "42:00:00:00:01:00", "r2": "42:00:00:00:02:00"}
         self._shapes, self._nft_loss = {}, {}
-        for name in ("r1", "r2"):
+        for i, name in enumerate(("r1", "r2")):
             self.topology.add(name)
-            self._robots[name] = cast(Robot, name)
+            self._robots[name] = Robot(
+                name, i, f"nlx-{name}", f"p-{name}", f"02:00:00:00:0{i}:00",
+                naming.address_for(1, i), workdir / name, iface=f"wlan{i}",
+            )  # fmt: skip
 
     def robot(self, ref: RobotRef) -> Robot:
-        return cast(Robot, ref)
+        return self._robots[ref if isinstance(ref, str) else ref.name]
 
     def _check_up(self) -> None:
         pass
 
+    def air_links(self) -> dict[tuple[str, str], float]:
+        """The links the radio medium obeys now (its links file)."""
+        return airmedium.read_links(self.air_links_file).links
+
+
+def test_a_radio_lab_refuses_what_needs_the_wired_medium(tmp_path: Path) -> None:
+    """docs/scenarios.md: a radio link has no qdisc to shape."""
+    medium = _RadioMedium(tmp_path)
+    with pytest.raises(NetlabError, match="shaping a link: not on the radio medium yet"):
+        medium.shape("r1", delay=10)
+
 
 @pytest.mark.parametrize(
-    ("what", "call"),
+    ("call", "links"),
     [
-        ("a partition", lambda m: m.partition([["r1"], ["r2"]])),
-        ("a merge", lambda m: m.merge()),
-        ("moving a robot", lambda m: m.move("r1", (5.0, 0.0))),
-        ("a pair's loss", lambda m: m.set_pair_quality("r1", "r2", loss=10.0)),
-        ("shaping a link", lambda m: m.shape("r1", delay=10)),
+        (lambda m: m.partition([["r1"], ["r2"]]), {}),
+        (lambda m: m.move("r1", (50.0, 0.0)), {}),
+        (
+            lambda m: m.set_pair_quality("r1", "r2", loss=10.0, both=False),
+            {("r1", "r2"): 10.0, ("r2", "r1"): 0.0},
+        ),
+        (
+            lambda m: (m.partition([["r1"], ["r2"]]), m.merge()),
+            {("r1", "r2"): 0.0, ("r2", "r1"): 0.0},
+        ),
     ],
 )
-def test_a_radio_lab_refuses_what_needs_the_wired_medium(
-    what: str, call: Callable[[LabMedium], object]
+def test_a_radio_labs_moves_and_partitions_reach_its_medium_as_links(
+    tmp_path: Path, call: Callable[[LabMedium], object], links: dict[tuple[str, str], float]
 ) -> None:
-    """docs/scenarios.md: every radio hears every other; the wired medium's rules say so."""
-    medium = _RadioMedium()
-    with pytest.raises(NetlabError, match=f"{what}: not on the radio medium yet"):
-        call(medium)
-    assert medium.links() == {("r1", "r2"): 0.0, ("r2", "r1"): 0.0}
+    """The radio medium obeys the range model as the wired one does: the lab's truth and
+    the medium's links file agree after each change."""
+    medium = _RadioMedium(tmp_path)
+    call(medium)
+    assert medium.links() == links
+    assert medium.air_links() == links
