@@ -132,6 +132,7 @@ def read_pcap(
     by `netlab.capture.Capture`) says, else the file name without extension, no MAC, "robot".
     Without a MAC, or for the medium, records have no direction.
     """
+    import scapy.layers.dot11  # noqa: F401  (radiotap, 802.11: a radio lab's air.pcap)
     from scapy.error import Scapy_Exception
     from scapy.utils import PcapReader
 

@@ -6,6 +6,8 @@ pcaps built with scapy, as hwsim0 writes them; the radio tier captures the real 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 from scapy.layers.dot11 import Dot11, Dot11Auth, Dot11Beacon, Dot11Elt, Dot11QoS, RadioTap
@@ -86,6 +88,20 @@ def test_802_11_frames_become_records_of_their_own_kinds(tmp_path: Path) -> None
     assert ack.frame_len == 10 and not ack.multicast
     # A data frame in the clear is read through to its SDfR datagram, as on Ethernet.
     assert clear.robot == "r2" and clear.src == "10.1.0.2" and clear.payload_len > 0
+
+
+def test_a_fresh_reader_knows_the_radiotap_link_type(tmp_path: Path) -> None:
+    """Read by a process that imported nothing of scapy's 802.11 itself (as `netlab run` and
+    `netlab report` are), the air's frames are still 802.11 frames, not raw bytes."""
+    path = write_air(tmp_path)
+    code = f"from netlab.pcap import read_pcap; print([r.kind for r in read_pcap({str(path)!r})])"
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert out.stdout.split("\n")[0] == str(
+        [WIFI_MGMT, WIFI_MGMT, EAPOL, WIFI_DATA, WIFI_CTRL, SDFR]
+    ), out.stdout + out.stderr
+    assert "unknown LL type" not in out.stderr
 
 
 def test_the_air_is_tallied_by_kind_and_transmitter(tmp_path: Path) -> None:
