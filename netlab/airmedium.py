@@ -193,12 +193,25 @@ def _s32(value: int) -> bytes:
     return struct.pack("=i", value)
 
 
+#: Legacy rates every band has (5 GHz has 8, 2.4 GHz 12): hwsim reports a received frame's
+#: rate to mac80211 as a legacy rate index, and mac80211 drops a frame whose index is past
+#: its band's table (with a warning), as an HT rate's MCS index would often be.
+LEGACY_RATES = 8
+
+
+def rx_rate(rate: int) -> int:
+    """The rate index a receiver is told: the sender's if it is a legacy one every band
+    has, else the lowest (the sender's rate control sees only the tx status)."""
+    return rate if 0 <= rate < LEGACY_RATES else 0
+
+
 def rx_payload(receiver: bytes, tx: TxFrame, rate: int, signal: int = SIGNAL) -> bytes:
-    """The attributes of the HWSIM_CMD_FRAME that hands `tx`'s frame to radio `receiver`."""
+    """The attributes of the HWSIM_CMD_FRAME that hands `tx`'s frame, sent at rate index
+    `rate`, to radio `receiver`."""
     out = (
         hwsim.attr(hwsim.ATTR_ADDR_RECEIVER, receiver)
         + hwsim.attr(hwsim.ATTR_FRAME, tx.frame)
-        + hwsim.attr_u32(hwsim.ATTR_RX_RATE, max(rate, 0))
+        + hwsim.attr_u32(hwsim.ATTR_RX_RATE, rx_rate(rate))
         + hwsim.attr(hwsim.ATTR_SIGNAL, _s32(signal))
     )
     if tx.freq is not None:

@@ -62,6 +62,14 @@ def test_a_delivery_names_the_receiver_with_a_signed_signal_and_the_frequency() 
     assert struct.unpack("=I", got[hwsim.ATTR_FREQ]) == (2412,)
 
 
+@pytest.mark.parametrize(("sent", "told"), [(0, 0), (3, 3), (7, 7), (8, 0), (15, 0), (-1, 0)])
+def test_a_receiver_is_told_a_rate_index_its_band_has(sent: int, told: int) -> None:
+    """mac80211 drops a received frame whose legacy rate index is past its band's table:
+    an HT sender's MCS 15 must not reach it as legacy rate 15."""
+    got = dict(hwsim.attrs(airmedium.rx_payload(B, tx(), rate=sent)))
+    assert struct.unpack("=I", got[hwsim.ATTR_RX_RATE]) == (told,)
+
+
 @pytest.mark.parametrize("acked", [True, False])
 def test_a_tx_status_carries_the_cookie_the_attempts_and_the_ack(acked: bool) -> None:
     sent = tx(flags=airmedium.TX_CTL_REQ_TX_STATUS | airmedium.TX_STAT_ACK)
