@@ -160,6 +160,7 @@ start=$SECONDS
 # timeout puts itself and the VM in a new process group, killed as a whole on expiry.
 # vng's own temporary files go under $res too (TMPDIR), so they go with it.
 mkdir "$res/tmp"
+: >"$res/vm.log" # before tail follows it: the VM's redirection may come later
 TMPDIR="$res/tmp" timeout -k 20 "$limit" vng "${vng_args[@]}" --exec "bash $res/inner.sh" \
     </dev/null >"$res/vm.log" 2>&1 &
 vm_pgid=$!
