@@ -62,6 +62,8 @@ from sdfr.client import Client
 
 #: Seconds the radio medium may take to start and register (a Python start, under emulation).
 AIR_START_TIMEOUT = 60.0
+#: A radio lab's media: netlab's own (the range model), or hwsim's (all hear all).
+AIR_MEDIA = ("netlab", "hwsim")
 
 __all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "SUN_PATH_MAX", "Lab", "Robot", "RobotRef"]
 
@@ -98,6 +100,7 @@ class Lab(LabProcesses, LabMedium):
         runtime: str = "namespace",
         image: str = docker.DEFAULT_IMAGE,
         air: str = "wired",
+        air_medium: str = "netlab",
     ) -> None:
         self.name = naming.check_lab_name(name)
         if addressing not in ("manual", "auto"):
@@ -108,9 +111,15 @@ class Lab(LabProcesses, LabMedium):
             raise NetlabError(f"medium: one of {', '.join(AIRS)}, got {air!r}")
         if air == "radio" and runtime != "namespace":
             raise NetlabError("medium radio: its robots are namespaces (runtime namespace)")
+        if air_medium not in AIR_MEDIA:
+            raise NetlabError(f"air_medium: one of {', '.join(AIR_MEDIA)}, got {air_medium!r}")
         #: wired: every robot's eth0 on one bridge, the medium's rules between them; radio:
         #: each robot a mac80211_hwsim radio, and sdfrd joins the fleet's WiFi on it.
         self.air = air
+        #: A radio lab's medium: "netlab" (`netlab.airmedium`: the range model decides who
+        #: hears a frame) or "hwsim" (the kernel's own: every radio hears every other at once,
+        #: no moves or partitions; 802.11s mesh needs it in the emulated VM for now).
+        self.air_medium = air_medium
         self._hwsim: hwsim.Hwsim | None = None
         self._radio_addrs: dict[str, str] = {}
         self.runtime = runtime
@@ -214,7 +223,8 @@ class Lab(LabProcesses, LabMedium):
             if self.air == "radio":
                 self._hwsim = hwsim.Hwsim()
                 _write_secret(self.wifi_secret_file, os.urandom(24).hex())
-                self._start_air()
+                if self.air_medium == "netlab":
+                    self._start_air()
         except LabExistsError:
             # The leftovers are not ours to touch: release the name, leave them for `down`.
             manifest.remove(self.name)
@@ -323,8 +333,11 @@ class Lab(LabProcesses, LabMedium):
         self.medium.open()
         if self.air == "radio":
             self._hwsim = hwsim.Hwsim()
-            table = airmedium.read_links(self.air_links_file)
-            self._radio_addrs = {r: airmedium.mac_text(a) for a, r in table.radios.items()}
+            if not self.air_links_file.exists():  # (no medium of netlab's: hwsim's own)
+                self.air_medium = "hwsim"
+            else:
+                table = airmedium.read_links(self.air_links_file)
+                self._radio_addrs = {r: airmedium.mac_text(a) for a, r in table.radios.items()}
         self._state = "up"
 
     def _start_air(self) -> None:

@@ -27,6 +27,7 @@ class LabMedium:
     topology: Topology
     medium: Medium
     air: str
+    air_medium: str  # a radio lab's: "netlab" (netlab.airmedium) or "hwsim" (the kernel's)
     workdir: Path
     _state: str
     _radio_addrs: dict[str, str]  # a radio lab's robots' hwsim addresses
@@ -70,6 +71,16 @@ class LabMedium:
                 "use a wired lab (medium wired)"
             )
 
+    def _ranged(self, what: str) -> None:
+        """NetlabError for `what` on a radio lab left to hwsim's own medium, where every
+        radio hears every other (no range model between them)."""
+        if self.air != "wired" and self.air_medium != "netlab":
+            raise NetlabError(
+                f"{what}: this radio lab is on hwsim's own medium (air_medium hwsim), where "
+                "every radio hears every other; netlab's medium (air_medium netlab) obeys the "
+                "range model"
+            )
+
     @property
     def air_links_file(self) -> Path:
         """A radio lab's links, as its medium (`netlab.airmedium`) obeys them."""
@@ -81,6 +92,8 @@ class LabMedium:
         return self.workdir / "air" / "stats.json"
 
     def _apply_medium(self) -> None:
+        if self.air != "wired" and self.air_medium != "netlab":
+            return  # (hwsim's own medium: every radio hears every other)
         if self.air != "wired":  # the radios' frames go through the lab's air medium
             radios = {r: a for r, a in self._radio_addrs.items() if r in self._robots}
             links = {p: loss for p, loss in self.topology.links().items() if set(p) <= set(radios)}
@@ -93,8 +106,11 @@ class LabMedium:
         """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
 
         Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
-        A radio lab's medium delivers frames by the same links.
+        A radio lab's medium delivers frames by the same links; on hwsim's own medium
+        every radio hears every other.
         """
+        if self.air != "wired" and self.air_medium != "netlab":
+            return {(a, b): 0.0 for a in self._robots for b in self._robots if a != b}
         link_loss = {name: shape.loss for name, shape in self._shapes.items()}
         return with_link_loss(self.topology.links(), link_loss)
 
@@ -108,18 +124,21 @@ class LabMedium:
 
     def move(self, ref: RobotRef, pos: Pos) -> None:
         self._check_up()
+        self._ranged("moving a robot")
         self.topology.move(self.robot(ref).name, pos)
         self._changed()
 
     def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
         """Cut every link between `groups` (robots in none form one more group)."""
         self._check_up()
+        self._ranged("a partition")
         self.topology.partition([[self.robot(r).name for r in g] for g in groups])
         self._changed()
 
     def merge(self) -> None:
         """End the partition."""
         self._check_up()
+        self._ranged("a merge")
         self.topology.merge()
         self._changed()
 
@@ -128,6 +147,7 @@ class LabMedium:
     ) -> None:
         """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
         self._check_up()
+        self._ranged("a pair's loss")
         self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
         self._changed()
 
@@ -142,6 +162,7 @@ class LabMedium:
     ) -> list[tuple[float, Links]]:
         """Move the model's robots every `step` seconds for `duration`; the links at each step."""
         self._check_up()
+        self._ranged("mobility")
         for name in model.robots:
             self.robot(name)
         timeline: list[tuple[float, Links]] = []

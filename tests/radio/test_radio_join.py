@@ -12,14 +12,13 @@ printed (`-s`) for docs/fleet-behaviour.md.
 from __future__ import annotations
 
 import re
-import shutil
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
-from netlab import hwsim, naming
+from netlab import naming
 from netlab.lab import Lab
 
 pytestmark = pytest.mark.root
@@ -34,21 +33,22 @@ DISCOVER = 120.0
 WATCH = 90.0
 
 
-@pytest.fixture(autouse=True)
-def radios() -> None:
-    if not hwsim.loaded():
-        pytest.skip(
-            "no mac80211_hwsim in this kernel (this host has no wireless stack): "
-            "`make test-radio` runs these tests in a VM"
-        )
-    missing = [t for t in ("iw", "wpa_supplicant") if shutil.which(t) is None]
-    assert not missing, f"{missing} not installed: scripts/bootstrap-vm.sh radio installs them"
+#: The medium each mode's lab runs on. IBSS runs on netlab's own (`netlab.airmedium`). 802.11s
+#: mesh runs on hwsim's own for now: on netlab's, in the emulated VM, r1 and r2's peer link
+#: kept closing and SAE kept restarting although the medium acknowledged every unicast frame
+#: (6429 of 6429); the medium's latency per frame there (5.6 ms of CPU each) against mesh
+#: peering's 40 ms timers is the suspect, not yet proven (issue 28's note).
+MEDIUM = {"ibss": "netlab", "mesh": "hwsim"}
 
 
 @pytest.fixture
-def lab(tmp_path: Path) -> Iterator[Lab]:
+def lab(tmp_path: Path, mode: str) -> Iterator[Lab]:
     with Lab(
-        naming.unique_lab_name("w"), workdir=tmp_path / "lab", fleet=FLEET, air="radio"
+        naming.unique_lab_name("w"),
+        workdir=tmp_path / "lab",
+        fleet=FLEET,
+        air="radio",
+        air_medium=MEDIUM[mode],
     ) as lab:
         yield lab
 
@@ -112,8 +112,8 @@ def test_robots_join_the_fleets_wifi_and_discover_each_other_and_another_secret_
         lambda: all(listed(lab, r) == everyone - {r} for r in ROBOTS),
         DISCOVER,
     )
-    print(f"\nradio {mode}: {len(ROBOTS)} robots healthy {started:.1f} s after start, "
-          f"each listing the others {seen:.1f} s later")  # fmt: skip
+    print(f"\nradio {mode} ({MEDIUM[mode]}'s medium): {len(ROBOTS)} robots healthy "
+          f"{started:.1f} s after start, each listing the others {seen:.1f} s later")  # fmt: skip
     expected = {"ibss": "IBSS", "mesh": "mesh point"}[mode]
     macs = {r: mac_of(lab, r) for r in [*ROBOTS, "r4"]}
     for robot in ROBOTS:

@@ -8,14 +8,13 @@ are generous, the times measured and the medium's cost (its own counters) are pr
 
 from __future__ import annotations
 
-import shutil
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
-from netlab import airmedium, hwsim, naming
+from netlab import airmedium, naming
 from netlab.lab import Lab
 from netlab.ranges import UnitDisc
 from sdfr.protocol.config import MISS_LIMIT
@@ -36,17 +35,6 @@ LEAVE = 10 * MISS_LIMIT * BEACON
 #: Back in range, the radios meet again (IBSS merge, a new key handshake if the stations
 #: expired), then sdfrd's beacons: slower than leaving.
 REJOIN = 180.0
-
-
-@pytest.fixture(autouse=True)
-def radios() -> None:
-    if not hwsim.loaded():
-        pytest.skip(
-            "no mac80211_hwsim in this kernel (this host has no wireless stack): "
-            "`make test-radio` runs these tests in a VM"
-        )
-    missing = [t for t in ("iw", "wpa_supplicant") if shutil.which(t) is None]
-    assert not missing, f"{missing} not installed: scripts/bootstrap-vm.sh radio installs them"
 
 
 @pytest.fixture

@@ -16,27 +16,15 @@ VM emulates one slow CPU: the scenarios' deadlines are generous.
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from netlab import hwsim, scenario
+from netlab import scenario
 
 pytestmark = pytest.mark.root
-
-
-@pytest.fixture(autouse=True)
-def radios() -> None:
-    if not hwsim.loaded():
-        pytest.skip(
-            "no mac80211_hwsim in this kernel (this host has no wireless stack): "
-            "`make test-radio` runs these tests in a VM"
-        )
-    missing = [t for t in ("iw", "wpa_supplicant", "tcpdump") if shutil.which(t) is None]
-    assert not missing, f"{missing} not installed: scripts/bootstrap-vm.sh radio installs them"
 
 
 def run(name: str, folder: Path, **sdfrd: Any) -> tuple[scenario.RunResult, dict[str, Any]]:

@@ -71,8 +71,9 @@ def test_the_doctor_says_why_radio_labs_cannot_run(tmp_path: Path) -> None:
 class _RadioMedium(LabMedium):
     """The medium part of a radio lab, alone (its lab is up, robots r1 and r2 at 0, 0)."""
 
-    def __init__(self, workdir: Path) -> None:
+    def __init__(self, workdir: Path, air_medium: str = "netlab") -> None:
         self.air, self._state, self._batch = "radio", "up", 0
+        self.air_medium = air_medium
         self.workdir = workdir
         (workdir / "air").mkdir()
         self.topology = Topology(UnitDisc(10.0))
@@ -128,3 +129,24 @@ def test_a_radio_labs_moves_and_partitions_reach_its_medium_as_links(
     call(medium)
     assert medium.links() == links
     assert medium.air_links() == links
+
+
+@pytest.mark.parametrize(
+    ("call", "what"),
+    [
+        (lambda m: m.partition([["r1"], ["r2"]]), "a partition"),
+        (lambda m: m.move("r1", (50.0, 0.0)), "moving a robot"),
+        (lambda m: m.merge(), "a merge"),
+        (lambda m: m.set_pair_quality("r1", "r2", loss=10.0), "a pair's loss"),
+    ],
+)
+def test_a_radio_lab_on_hwsim_s_own_medium_refuses_what_needs_ranges(
+    tmp_path: Path, call: Callable[[LabMedium], object], what: str
+) -> None:
+    """On hwsim's own medium every radio hears every other: the lab's truth says so, and
+    what would need the range model is refused, saying which medium would obey it."""
+    medium = _RadioMedium(tmp_path, air_medium="hwsim")
+    assert medium.links() == {("r1", "r2"): 0.0, ("r2", "r1"): 0.0}
+    with pytest.raises(NetlabError, match=f"{what}: this radio lab is on hwsim's own medium"):
+        call(medium)
+    assert not medium.air_links_file.exists()
