@@ -212,3 +212,30 @@ def test_an_error_names_the_daemons_that_ended_though_no_step_stopped_them(
     assert "step 3 (publish)" in result.error
     assert "sdfrd ended though no step stopped it on r2 (signal 9 (SIGKILL))" in result.error
     assert "r3 (" not in result.error
+
+
+def test_a_start_step_waits_as_long_as_it_says(
+    fake: tuple[Backend, list[FakeLab]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A start step's `within` is how long its robots may take to be healthy (a radio robot
+    joins its WiFi first); without it, 60 s or 2 s a robot."""
+    backend, _ = fake
+    clock = _virtual(backend, monkeypatch)
+    waited: list[float] = []
+    real_start_all = FakeLab.start_all
+
+    def start_all(lab: FakeLab, refs: object = None, *, timeout: float = 60, **kw: object) -> None:
+        waited.append(timeout)
+        real_start_all(lab, refs, timeout=timeout, **kw)
+
+    monkeypatch.setattr(FakeLab, "start_all", start_all)
+    sc = Scenario(
+        "slow-start",
+        robots=2,
+        beacon=PRODUCT_BEACON,
+        capture="none",
+        steps=[Start(["r1"], within="5 min"), Start(["r2"])],
+    )
+    result = run(sc, run_dir=tmp_path, backend=replace(backend, clock=clock), say=quiet([]))
+    assert result.status == "passed", result.error
+    assert waited == [300.0, 60.0]
