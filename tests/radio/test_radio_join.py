@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from netlab import naming
 from netlab.lab import Lab
+from tests.support.radio import listed, wait_until
 
 pytestmark = pytest.mark.root
 
@@ -51,20 +52,6 @@ def lab(tmp_path: Path, mode: str) -> Iterator[Lab]:
         air_medium=MEDIUM[mode],
     ) as lab:
         yield lab
-
-
-def wait_until(what: str, ok: Callable[[], bool], timeout: float) -> float:
-    """Seconds until `ok()`; fails saying `what` after `timeout`."""
-    t0 = time.monotonic()
-    while not ok():
-        if time.monotonic() - t0 > timeout:
-            pytest.fail(f"not within {timeout:.0f} s: {what}")
-        time.sleep(0.5)
-    return time.monotonic() - t0
-
-
-def listed(lab: Lab, robot: str) -> set[str]:
-    return {str(n["robot_id"]) for n in lab.client(robot).neighbors()}
 
 
 def stations(lab: Lab, robot: str) -> dict[str, str]:

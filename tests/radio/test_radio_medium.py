@@ -9,7 +9,7 @@ are generous, the times measured and the medium's cost (its own counters) are pr
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,6 +18,7 @@ from netlab import airmedium, naming
 from netlab.lab import Lab
 from netlab.ranges import UnitDisc
 from sdfr.protocol.config import MISS_LIMIT
+from tests.support.radio import listed, wait_until
 
 pytestmark = pytest.mark.root
 
@@ -47,20 +48,6 @@ def lab(tmp_path: Path) -> Iterator[Lab]:
         range_model=UnitDisc(RADIUS),
     ) as lab:
         yield lab
-
-
-def wait_until(what: str, ok: Callable[[], bool], timeout: float) -> float:
-    """Seconds until `ok()`; fails saying `what` after `timeout`."""
-    t0 = time.monotonic()
-    while not ok():
-        if time.monotonic() - t0 > timeout:
-            pytest.fail(f"not within {timeout:.0f} s: {what}")
-        time.sleep(0.5)
-    return time.monotonic() - t0
-
-
-def listed(lab: Lab, robot: str) -> set[str]:
-    return {str(n["robot_id"]) for n in lab.client(robot).neighbors()}
 
 
 def all_listed(lab: Lab) -> bool:
