@@ -16,6 +16,8 @@ APT_NEEDS=(
     "python3-venv:"
     "systemd:systemd-analyze"
     "systemd-container:systemd-nspawn"
+    "openssh-client:ssh"
+    "openssh-server:/usr/sbin/sshd"
 )
 
 missing=()
