@@ -23,6 +23,7 @@ import contextlib
 import hashlib
 import ipaddress
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -260,7 +261,9 @@ class SimHosts:
         config = self._sshd_config(host)
         log = self.workdir / f"sshd_{host.alias}.log"
         Path("/run/sshd").mkdir(mode=0o755, exist_ok=True)  # its privilege separation dir
-        argv = kernel.ns_argv(host.ns, [SSHD, "-D", "-e", "-f", str(config)])
+        # nsenter, not `ip netns exec`: only the network namespace changes, so that what a
+        # session mounts (the namespaces it makes, under /run/netns) is seen machine-wide.
+        argv = ["nsenter", f"--net=/run/netns/{host.ns}", SSHD, "-D", "-e", "-f", str(config)]
         with log.open("ab") as out:
             self._sshd[host.alias] = subprocess.Popen(
                 argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
@@ -297,8 +300,9 @@ class SimHosts:
         self.ssh_config.write_text("\n".join(blocks))
 
     def ssh_argv(self, alias: str, argv: Sequence[str]) -> list[str]:
-        """``ssh -F <config> ALIAS -- ARGV``: how the controller runs a command on a host."""
-        return ["ssh", "-F", str(self.ssh_config), alias, "--", *argv]
+        """``ssh -F <config> ALIAS -- ARGV``: how the controller runs a command on a host
+        (each argument quoted for the remote shell, as ssh joins them into one line)."""
+        return ["ssh", "-F", str(self.ssh_config), alias, "--", shlex.join(argv)]
 
     def aliases(self) -> Iterator[str]:
         return (h.alias for h in self.hosts)

@@ -143,3 +143,14 @@ def run_in_ns(name: str, argv: Sequence[str], doing: str, stdin: str | None = No
             stdin=None if stdin is not None else subprocess.DEVNULL,
         )
     return res.stdout
+
+
+def run_argv(argv: Sequence[str], doing: str) -> str:
+    """Run `argv` in this process's own namespace to completion; its stdout, or KernelError
+    with stderr."""
+    with kernel_errors(doing):
+        res = subprocess.run(
+            list(argv), capture_output=True, text=True, timeout=60, check=True,
+            stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+    return res.stdout

@@ -27,6 +27,8 @@ from netlab import kernel
 from netlab.errors import KernelError, kernel_errors
 from netlab.naming import BRIDGE, ROBOT_IFACE
 from netlab.ranges import Pair
+from netlab.vxlan import PORT_NAME as SPAN_PORT
+from netlab.vxlan import Span
 
 TABLE = "netlab"
 #: Loss resolution of the nft rules: 1/LOSS_SCALE, i.e. 0.01 %.
@@ -38,25 +40,42 @@ def loss_units(loss: float) -> int:
     return max(0, min(LOSS_SCALE, round(loss * LOSS_SCALE / 100)))
 
 
-def ruleset(links: Mapping[Pair, float], ports: Mapping[str, str], table: str = TABLE) -> str:
+def ruleset(
+    links: Mapping[Pair, float],
+    ports: Mapping[str, str],
+    table: str = TABLE,
+    remote: Mapping[str, str] | None = None,
+    span_port: str | None = None,
+) -> str:
     """The nft script that replaces `table` with one allowing exactly `links`.
 
     `links` maps ordered (sender, receiver) robot pairs to a loss in percent;
     `ports` maps robots to their bridge port. Pairs whose loss rounds to 100 %
     are left out (the policy drops them).
+
+    A medium spanning hosts (`netlab.vxlan`) has the other hosts' robots in `remote`
+    (robot -> MAC), all behind the bridge port `span_port`: a frame from one of them is
+    judged by its source MAC and the local receiver's port (the ``remote`` map); a frame
+    leaving through `span_port` passes (its receiver's host judges it).  Pairs between two
+    remote robots are left to their hosts.
     """
+    remote = remote or {}
     verdicts: list[str] = []
+    from_afar: list[str] = []
     chains: set[int] = set()
     for (a, b), loss in sorted(links.items()):
         units = loss_units(loss)
-        if units >= LOSS_SCALE:
+        if units >= LOSS_SCALE or b in remote or (a in remote and span_port is None):
             continue
         if units == 0:
             verdict = "accept"
         else:
             verdict = f"jump loss_{units}"
             chains.add(units)
-        verdicts.append(f'"{ports[a]}" . "{ports[b]}" : {verdict}')
+        if a in remote:
+            from_afar.append(f'{remote[a]} . "{ports[b]}" : {verdict}')
+        else:
+            verdicts.append(f'"{ports[a]}" . "{ports[b]}" : {verdict}')
     lines = [
         # Declaring the table first makes the delete valid when it does not exist yet.
         f"table bridge {table}",
@@ -70,20 +89,33 @@ def ruleset(links: Mapping[Pair, float], ports: Mapping[str, str], table: str = 
             "\t\taccept",
             "\t}",
         ]
-    lines += ["\tmap pairs {", "\t\ttype ifname . ifname : verdict"]
-    if verdicts:
-        lines.append("\t\telements = {")
-        lines += [f"\t\t\t{v}," for v in verdicts]
-        lines.append("\t\t}")
+    lines += _map("pairs", "ifname . ifname", verdicts)
+    if span_port is not None:
+        lines += _map("remote", "ether_addr . ifname", from_afar)
     lines += [
-        "\t}",
         "\tchain forward {",
         "\t\ttype filter hook forward priority 0; policy drop;",
+    ]
+    if span_port is not None:
+        lines += [
+            f'\t\tiifname "{span_port}" ether saddr . oifname vmap @remote',
+            f'\t\toifname "{span_port}" accept',
+        ]
+    lines += [
         "\t\tiifname . oifname vmap @pairs",
         "\t}",
         "}",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _map(name: str, key: str, elements: list[str]) -> list[str]:
+    lines = [f"\tmap {name} {{", f"\t\ttype {key} : verdict"]
+    if elements:
+        lines.append("\t\telements = {")
+        lines += [f"\t\t\t{v}," for v in elements]
+        lines.append("\t\t}")
+    return [*lines, "\t}"]
 
 
 class Medium:
@@ -94,6 +126,8 @@ class Medium:
         self._ipr: IPRoute | None = None
         self._bridge = 0
         self._loaded: str | None = None
+        #: The bridge port joining this medium to the other hosts' (`span`), if any.
+        self.span_port: str | None = None
 
     @property
     def ipr(self) -> IPRoute:
@@ -140,9 +174,33 @@ class Medium:
             raise KernelError(f"no port {port} on the medium {self.ns}")
         return int(found[0])
 
-    def load(self, links: Mapping[Pair, float], ports: Mapping[str, str]) -> bool:
-        """Make the table allow exactly `links`; False if it already did."""
-        text = ruleset(links, ports)
+    def span(self, span: Span, ifname: str = SPAN_PORT) -> None:
+        """Join this medium to the other hosts' (see `netlab.vxlan`): the VXLAN device is made
+        in the calling process's namespace (the one with the underlay), moved onto the bridge,
+        and told to flood group frames to every other host."""
+        doing = f"joining the medium {self.ns} to the other hosts over VXLAN {span.vni}"
+        kernel.run_argv(span.create_argv(ifname), doing)
+        try:
+            kernel.run_argv(["ip", "link", "set", ifname, "netns", self.ns], doing)
+        except KernelError:
+            kernel.run_argv(["ip", "link", "del", ifname], doing)
+            raise
+        for argv in span.flood_argvs(ifname):
+            kernel.run_in_ns(self.ns, argv, doing)
+        with kernel_errors(doing):
+            index = self.ipr.link_lookup(ifname=ifname)[0]
+            self.ipr.link("set", index=index, master=self._bridge, state="up")
+        self.span_port = ifname
+
+    def load(
+        self,
+        links: Mapping[Pair, float],
+        ports: Mapping[str, str],
+        remote: Mapping[str, str] | None = None,
+    ) -> bool:
+        """Make the table allow exactly `links` (with the other hosts' robots, by MAC, in
+        `remote` when spanned); False if it already did."""
+        text = ruleset(links, ports, remote=remote, span_port=self.span_port)
         if text == self._loaded:
             return False
         kernel.run_in_ns(
