@@ -200,6 +200,16 @@ class Run:
 
     def _keep_logs(self) -> None:
         logs = self.run_dir / "logs"
+        stats = getattr(self.lab, "air_stats_file", None)  # a radio lab's medium, if it ran
+        if self.sc.medium == "radio" and isinstance(stats, Path):
+            for kept, copy in (
+                (stats, "air-medium.json"),
+                (stats.parent / "medium.log", "air-medium.log"),
+            ):
+                with contextlib.suppress(OSError):
+                    if kept.exists():
+                        logs.mkdir(exist_ok=True)
+                        shutil.copyfile(kept, logs / copy)
         for name in self.sc.names:
             with contextlib.suppress(NetlabError, OSError):
                 src = self.lab.robot(name).log

@@ -182,3 +182,38 @@ def test_the_links_file_is_replaced_whole_and_reads_back(tmp_path: Path) -> None
     path.write_text('{"radios": {"r1": "42:00"}, "links": []}')
     with pytest.raises(NetlabError, match=r"links file .*not a MAC address"):
         airmedium.read_links(path)
+
+
+def test_a_wake_up_reads_every_frame_waiting_and_counts_how_far_behind_it_was(
+    tmp_path: Path,
+) -> None:
+    """The medium drains its socket at each wake-up (at most BATCH datagrams) without
+    blocking; a wake-up that finds more than one waiting counts as behind.  (A datagram
+    socket pair stands in for the netlink socket: the kernel's side is the radio tier's.)"""
+    import socket
+
+    ours, kernel = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+
+    class Genl:
+        family = 30
+        sock = ours
+
+    medium = airmedium.Medium(Genl(), tmp_path / "links.json", tmp_path / "stats.json", 1)  # type: ignore[arg-type]
+    try:
+        for i in range(3):
+            kernel.send(b"datagram %d" % i)
+        assert medium.read() == [b"datagram 0", b"datagram 1", b"datagram 2"]
+        assert medium.read() == []  # nothing waiting: no block
+        for _ in range(airmedium.BATCH + 5):
+            kernel.send(b"x")
+        assert len(medium.read()) == airmedium.BATCH and len(medium.read()) == 5
+        frames = [hwsim.encode(30, hwsim.CMD_FRAME, airmedium.tx_payload(tx()), 0, 0)] * 2
+        medium.take([hwsim.encode(30, 99, b"", 0, 0), *frames])  # not a frame: skipped
+        medium.take(frames[:1])
+        counts = medium.counts
+        assert (counts["frames"], counts["wakeups"], counts["behind"]) == (3, 2, 1)
+        assert counts["max_batch"] == 3 and counts["unknown_sender"] == 3  # no links read
+        assert medium.stats()["priority"] == "normal"  # until main() asks for more
+    finally:
+        ours.close()
+        kernel.close()
