@@ -366,11 +366,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rep.add_argument("run_dir", metavar="RUN_DIR", help="a folder `netlab run` wrote")
 
-    sub.add_parser(
+    doc = sub.add_parser(
         "doctor",
         help="check what this kernel supports, and what follows",
         description="Try each kernel feature netlab uses in a throwaway namespace and say "
-        "what follows from what is missing. Exit status 1 when no lab can run here.",
+        "what follows from what is missing. Exit status 1 when no lab can run here. With "
+        "--hosts, check each host of a lab across machines over ssh instead.",
+    )
+    doc.add_argument(
+        "--hosts",
+        metavar="H1,H2,...",
+        help="ssh destinations (aliases or user@address) to check: reachable, root, the same "
+        "netlab version, iproute2/nftables/tcpdump, VXLAN; and each one's clock offset",
+    )
+    doc.add_argument("--ssh-config", type=Path, help="ssh's configuration file (default: ssh's)")
+    doc.add_argument(
+        "--host-python",
+        default="python3",
+        metavar="PATH",
+        help="the interpreter with netlab on the hosts (default: python3)",
     )
     return p
 
@@ -516,6 +530,11 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
+    if args.hosts:
+        from netlab.hosts import main_doctor
+
+        names = [h.strip() for h in args.hosts.split(",") if h.strip()]
+        return main_doctor(names, args.ssh_config, args.host_python)
     caps = probe(docker=True)
     print(format_report(caps))
     return 0 if caps.lab else 1
