@@ -58,6 +58,7 @@ from netlab.medium import Medium
 from netlab.ranges import Pos, RangeModel, Topology
 from netlab.robots import AIRS, RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
 from netlab.shaping import LinkShape
+from netlab.vxlan import Span
 from sdfr.client import Client
 
 #: Seconds the radio medium may take to start and register (a Python start, under emulation).
@@ -101,6 +102,7 @@ class Lab(LabProcesses, LabMedium):
         image: str = docker.DEFAULT_IMAGE,
         air: str = "wired",
         air_medium: str = "netlab",
+        span: Span | None = None,
     ) -> None:
         self.name = naming.check_lab_name(name)
         if addressing not in ("manual", "auto"):
@@ -120,6 +122,12 @@ class Lab(LabProcesses, LabMedium):
         #: hears a frame) or "hwsim" (the kernel's own: every radio hears every other at once,
         #: no moves or partitions; 802.11s mesh needs it in the emulated VM for now).
         self.air_medium = air_medium
+        if span is not None and air != "wired":
+            raise NetlabError("a lab across hosts (span) runs on the wired medium")
+        #: This host's end of a lab across hosts (`netlab.vxlan`): its medium is joined to the
+        #: other hosts' over VXLAN, their robots are `add_remote`'s.
+        self.span = span
+        self._remote: dict[str, str] = {}
         self._hwsim: hwsim.Hwsim | None = None
         self._radio_addrs: dict[str, str] = {}
         self.runtime = runtime
@@ -220,6 +228,8 @@ class Lab(LabProcesses, LabMedium):
             record.namespaces.append(self.medium.ns)
             manifest.save(record)
             self.medium.create()
+            if self.span is not None:
+                self.medium.span(self.span)
             if self.air == "radio":
                 self._hwsim = hwsim.Hwsim()
                 _write_secret(self.wifi_secret_file, os.urandom(24).hex())
@@ -425,12 +435,15 @@ class Lab(LabProcesses, LabMedium):
         pos: Pos = (0.0, 0.0),
         mac: str | None = None,
         runtime: str | None = None,
+        index: int | None = None,
     ) -> Robot:
         """A robot whose namespace has eth0 on the medium, lo up and a multicast route.
 
         `mac` defaults to one derived from the lab's seed and the robot's index; a
         given one may repeat another robot's (to script an address collision).
-        `runtime` defaults to the lab's: a lab may mix kinds.
+        `runtime` defaults to the lab's: a lab may mix kinds.  `index` (default: the
+        next) numbers the robot's address and MAC: a lab across hosts numbers its robots
+        across all hosts.
         """
         self._check_up()
         assert self._record is not None
@@ -440,7 +453,12 @@ class Lab(LabProcesses, LabMedium):
         t0 = time.perf_counter()
         # The kernel's ARP table is shared by all namespaces: make room for the mesh.
         hostlimits.ensure(self._other_labs_entries + hostlimits.mesh_entries(len(self._robots) + 1))
-        index = len(self._robots)
+        if index is None:
+            index = len(self._robots)
+        elif index < 0 or index in (r.index for r in self._robots.values()):
+            raise NetlabError(
+                f"robot {name}: index {index} is negative or taken in lab {self.name}"
+            )
         mac = naming.check_mac(mac) if mac is not None else self._auto_mac(index)
         runtime = runtime or self.runtime
         kind = self.kind(runtime)
@@ -499,11 +517,28 @@ class Lab(LabProcesses, LabMedium):
             self._save()
         else:
             self.medium.attach(robot.ns, robot.port, robot.mac)
+            if self.span is not None:  # room for VXLAN's header on the way to other hosts
+                argv = ["ip", "link", "set", robot.iface, "mtu", str(self.span.mtu)]
+                kernel.run_in_ns(robot.ns, argv, f"the MTU of robot {robot.name}")
         address = robot.address if self.addressing == "manual" else None
         kernel.bring_up(
             robot.ns, robot.iface, address, f"configuring {robot.iface} of robot {robot.name}"
         )
         return robot
+
+    def add_remote(self, name: str, *, mac: str, pos: Pos = (0.0, 0.0)) -> None:
+        """A robot of another host of this lab across hosts (see `span`): on the medium's
+        map at `pos`, its frames (arriving over VXLAN, known by `mac`) judged by the range
+        model like a local robot's; moved, partitioned and given pair loss by name."""
+        self._check_up()
+        if self.span is None:
+            raise NetlabError(f"lab {self.name} spans no hosts: a remote robot needs a span")
+        naming.check_robot_name(name)
+        if name in self._robots or name in self._remote:
+            raise NetlabError(f"lab {self.name} already has a robot {name!r}")
+        self.topology.add(name, pos)
+        self._remote[name] = naming.check_mac(mac)
+        self._changed()
 
     @property
     def wifi_secret_file(self) -> Path:

@@ -35,6 +35,8 @@ class LabMedium:
     _robots: dict[str, Robot]
     _shapes: dict[str, LinkShape]
     _nft_loss: dict[str, float]
+    #: A lab spanning hosts (`netlab.vxlan`): the other hosts' robots, by name, with their MAC.
+    _remote: dict[str, str]
 
     if TYPE_CHECKING:
 
@@ -58,6 +60,12 @@ class LabMedium:
                 else:
                     with contextlib.suppress(NetlabError):
                         self._apply_medium()
+
+    def _known(self, ref: RobotRef) -> str:
+        """A robot of this lab, or of another host of a spanning lab, by name."""
+        if isinstance(ref, str) and ref in self._remote:
+            return ref
+        return self.robot(ref).name
 
     def _changed(self) -> None:
         if self._batch == 0:
@@ -100,7 +108,8 @@ class LabMedium:
             airmedium.write_links(self.air_links_file, radios, links)
             return
         links = with_link_loss(self.topology.links(), self._nft_loss)
-        self.medium.load(links, {r.name: r.port for r in self._robots.values()})
+        ports = {r.name: r.port for r in self._robots.values()}
+        self.medium.load(links, ports, remote=self._remote)
 
     def links(self) -> Links:
         """Ground truth: every (sender, receiver) pair that is linked now, with its loss in %.
@@ -125,14 +134,14 @@ class LabMedium:
     def move(self, ref: RobotRef, pos: Pos) -> None:
         self._check_up()
         self._ranged("moving a robot")
-        self.topology.move(self.robot(ref).name, pos)
+        self.topology.move(self._known(ref), pos)
         self._changed()
 
     def partition(self, groups: Iterable[Iterable[RobotRef]]) -> None:
         """Cut every link between `groups` (robots in none form one more group)."""
         self._check_up()
         self._ranged("a partition")
-        self.topology.partition([[self.robot(r).name for r in g] for g in groups])
+        self.topology.partition([[self._known(r) for r in g] for g in groups])
         self._changed()
 
     def merge(self) -> None:
@@ -148,7 +157,7 @@ class LabMedium:
         """Loss in % of a→b (and b→a if `both`) while linked; None: back to the range model."""
         self._check_up()
         self._ranged("a pair's loss")
-        self.topology.set_pair_quality(self.robot(a).name, self.robot(b).name, loss, both)
+        self.topology.set_pair_quality(self._known(a), self._known(b), loss, both)
         self._changed()
 
     def run_mobility(

@@ -465,3 +465,9 @@ def test_a_topology_written_down_comes_back_with_the_same_links() -> None:
             return 0.0
 
     assert Topology(Custom()).to_json() is None  # a model netlab cannot write down
+
+
+def test_arp_table_limits_out_of_sight_are_left_to_the_machine(tmp_path: Path) -> None:
+    """In a namespace other than the initial one (a simulated host's ssh session) the
+    limits are not visible: a lab there leaves them to the machine's own labs."""
+    assert not hostlimits.ensure(hostlimits.mesh_entries(300), tmp_path / "absent")
