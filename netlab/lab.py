@@ -56,7 +56,7 @@ from netlab.labmedium import LabMedium
 from netlab.manifest import Manifest, ProcRecord, RobotRecord
 from netlab.medium import Medium
 from netlab.ranges import Pos, RangeModel, Topology
-from netlab.robots import AIRS, RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
+from netlab.robots import AIR_MEDIA, AIRS, RUNTIMES, Daemon, Robot, RobotKind, RobotRef, kind_for
 from netlab.shaping import LinkShape
 from netlab.vxlan import Span
 from sdfr.client import Client
@@ -64,7 +64,6 @@ from sdfr.client import Client
 #: Seconds the radio medium may take to start and register (a Python start, under emulation).
 AIR_START_TIMEOUT = 60.0
 #: A radio lab's media: netlab's own (the range model), or hwsim's (all hear all).
-AIR_MEDIA = ("netlab", "hwsim")
 
 __all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "SUN_PATH_MAX", "Lab", "Robot", "RobotRef"]
 

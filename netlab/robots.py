@@ -45,6 +45,9 @@ from sdfr.host import procfs
 RUNTIMES = ("namespace", "docker")
 #: What robots meet on: a wired bridge, or 802.11 radios (mac80211_hwsim, the VM tier).
 AIRS = ("wired", "radio")
+#: A radio lab's medium: netlab's own (`netlab.airmedium`: the range model decides who hears a
+#: frame) or hwsim's (the kernel's: every radio hears every other, no moves or partitions).
+AIR_MEDIA = ("netlab", "hwsim")
 #: Where a container robot's state dir is mounted (the image's volume).
 CONTAINER_STATE_DIR = "/var/lib/sdfr"
 #: sdfrd adds and removes its own addresses (`--addressing auto`): the daemon container

@@ -16,7 +16,7 @@
 # Environment:
 #   SDFR_SKIP_VM=1        skip every VM tier (says so; exit 0)
 #   SDFR_SKIP_NETEM=1     skip the netem tier; SDFR_SKIP_RADIO=1 the radio tier
-#   SDFR_VM_TIMEOUT=S     seconds before the VM is killed and the tier fails (900; radio 1500)
+#   SDFR_VM_TIMEOUT=S     seconds before the VM is killed and the tier fails (900; radio 2100)
 #   SDFR_VM_KERNEL=PATH   the kernel image to boot (default: newest Debian amd64)
 #   SDFR_VM_KVM=1         use KVM (default off: it hangs on the CI machines)
 #   SDFR_KEEP_LOGS=DIR    where a failed test's lab folders go (default: $TMPDIR or /tmp)
@@ -77,9 +77,9 @@ kver=${kernel#/boot/vmlinuz-}
     exit 1
 }
 
-# The radio tier's labs take minutes each to join their WiFi under emulation (about 13 in all).
+# The radio tier's labs take minutes each to join their WiFi under emulation (about 20 in all).
 default_limit=900
-[ "$tier" = radio ] && default_limit=1500
+[ "$tier" = radio ] && default_limit=2100
 limit=${SDFR_VM_TIMEOUT:-$default_limit}
 pytest_args=("$@")
 [ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s "tests/$tier")

@@ -99,6 +99,7 @@ class LabSpec:
     runtime: str = "namespace"
     image: str = DEFAULT_IMAGE
     medium: str = "wired"
+    air_medium: str = "netlab"
 
 
 def _real_lab(spec: LabSpec) -> LabLike:
@@ -115,6 +116,7 @@ def _real_lab(spec: LabSpec) -> LabLike:
         extra.update(runtime=spec.runtime, image=spec.image)
     if spec.medium != "wired":
         extra["air"] = spec.medium
+        extra["air_medium"] = spec.air_medium
     return Lab(spec.name, seed=spec.seed, fleet=spec.fleet, range_model=spec.range_model, **extra)
 
 

@@ -501,6 +501,7 @@ def run(
         scenario.runtime,
         image,
         scenario.medium,
+        scenario.air_medium,
     )
     reason = missing_requirements(scenario, backend.flags(spec))
     if reason is not None:

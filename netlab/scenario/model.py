@@ -13,7 +13,7 @@ from netlab.errors import NetlabError
 from netlab.judging import fmt_set
 from netlab.mobility import HALL
 from netlab.ranges import Pos
-from netlab.robots import AIRS, RUNTIMES
+from netlab.robots import AIR_MEDIA, AIRS, RUNTIMES
 from netlab.scenario.spec import (
     KEYWORDS,
     Bad,
@@ -85,7 +85,8 @@ class Scenario:
     robots as "namespace"s or "docker" containers of the robot image (`netlab.robots`);
     `kinds` gives some robots another (robot -> runtime: a lab may mix them).  `medium`:
     "wired" (a bridge) or "radio" (802.11 radios, each robot's sdfrd joining the fleet's
-    WiFi; the VM tier: `make test-radio`).
+    WiFi; the VM tier: `make test-radio`).  `air_medium`: a radio lab's medium, "netlab"
+    (netlab's own: ranges, moves and partitions) or "hwsim" (the kernel's: all hear all).
     """
 
     name: str
@@ -108,6 +109,7 @@ class Scenario:
     runtime: str = "namespace"
     kinds: Mapping[str, str] = field(default_factory=dict)
     medium: str = "wired"
+    air_medium: str = "netlab"
     #: Where it was read from, for messages.
     source: str | None = field(default=None, compare=False)
 
@@ -171,6 +173,8 @@ class Scenario:
             raise Bad(f"runtime: one of {', '.join(RUNTIMES)}, got {self.runtime!r}")
         if self.medium not in AIRS:
             raise Bad(f"medium: one of {', '.join(AIRS)}, got {self.medium!r}")
+        if self.air_medium not in AIR_MEDIA:
+            raise Bad(f"air_medium: one of {', '.join(AIR_MEDIA)}, got {self.air_medium!r}")
         for robot, kind in self.kinds.items():
             if robot not in self.names:
                 raise Bad(f"kinds: unknown robot {robot!r}")

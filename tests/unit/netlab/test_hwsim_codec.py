@@ -79,7 +79,7 @@ class _RadioMedium(LabMedium):
         self.topology = Topology(UnitDisc(10.0))
         self._robots = {}
         self._radio_addrs = {"r1": "42:00:00:00:01:00", "r2": "42:00:00:00:02:00"}
-        self._shapes, self._nft_loss = {}, {}
+        self._shapes, self._nft_loss, self._remote = {}, {}, {}
         for i, name in enumerate(("r1", "r2")):
             self.topology.add(name)
             self._robots[name] = Robot(

@@ -358,6 +358,8 @@ def test_bad_steps_are_refused_naming_the_step_and_the_field(steps: str, message
         ('name = "x"\naddressing = "dhcp"', r"addressing: one of manual, auto"),
         ('name = "x"\nruntime = "podman"', r"runtime: one of namespace, docker, got 'podman'"),
         ('name = "x"\nlayout = "circle"', r"layout: one of line, random"),
+        ('name = "x"\nmedium = "ether"', r"medium: one of wired, radio, got 'ether'"),
+        ('name = "x"\nair_medium = "wmediumd"', r"air_medium: one of netlab, hwsim, got 'wm"),
         ('name = "x"\nspeed = 2', r"\[scenario\]: unknown field speed"),
         ('name = "no spaces"', r"name: 1-64 of letters"),
     ],
