@@ -113,3 +113,22 @@ def test_four_robots_start_up_in_a_mesh(tmp_path: Path) -> None:
         f"\nradio-startup mesh (hwsim's medium): {startup_line(result, report)}; run "
         f"{result.duration:.0f} s; {traffic_line(report)}"
     )
+
+
+def test_the_same_range_scenario_on_the_wired_medium_in_the_same_vm(tmp_path: Path) -> None:
+    """radio-range on the wired medium (a bridge and its rules), in the same emulated VM: the
+    figures the radio's are set beside in docs/fleet-behaviour.md, measured alike."""
+    sc = replace(scenario.load(scenario.find("radio-range")), medium="wired")
+    folder = tmp_path / "run"
+    result = scenario.run(sc, run_dir=folder, quick=True)
+    assert result.ok, "\n".join(["radio-range on the wired medium:", *result.summary()])
+    report = json.loads((folder / "report.json").read_text())
+    assert report["meta"]["medium"] == "wired" and "air" not in report
+    took = {c.description: c.took for c in result.checks}
+    times = "; ".join(f"{k}: {v:.1f} s" for k, v in took.items() if v is not None)
+    payload = {r: t["tx_kB"]["payload"] for r, t in report["traffic"]["robots"].items()}
+    frames = {r: t["tx_kB"]["frame"] for r, t in report["traffic"]["robots"].items()}
+    print(
+        f"\nradio-range wired (same VM): {startup_line(result, report)}; {times}; run "
+        f"{result.duration:.0f} s; SDfR payload sent (kB) {payload}; frames sent (kB) {frames}"
+    )
