@@ -187,9 +187,7 @@ class Medium:
             raise
         for argv in span.flood_argvs(ifname):
             kernel.run_in_ns(self.ns, argv, doing)
-        with kernel_errors(doing):
-            index = self.ipr.link_lookup(ifname=ifname)[0]
-            self.ipr.link("set", index=index, master=self._bridge, state="up")
+        kernel.run_in_ns(self.ns, ["ip", "link", "set", ifname, "master", BRIDGE, "up"], doing)
         self.span_port = ifname
 
     def load(

@@ -1,13 +1,13 @@
-"""A lab across hosts, for real: two simulated hosts (namespaces with their own sshd, reached
-over SSH), each running its share of the lab (`Lab(span=...)`: its robots with real sdfrd,
-the other host's robots known by MAC and position) on media joined by VXLAN.  The four
-robots find each other across hosts, a partition along the hosts' line cuts each side off
-within the same bounds as on one host, and the merge brings all back."""
+"""A lab across hosts, for real: three simulated hosts (namespaces with their own sshd,
+reached over SSH like machines), each running its share of the lab through `netlab.agent`
+(its robots with real sdfrd; the other hosts' robots known by MAC and position), the media
+joined by VXLAN, driven by `netlab.spanlab.SpanLab`.  Six robots find each other across
+hosts; a partition along the hosts cuts each side off within the bounds of one host; the
+merge brings all back; a robot walking out of range is dropped on every host; a host that
+cannot be reached at `down` is named while the others are cleaned up."""
 
 from __future__ import annotations
 
-import json
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -15,124 +15,33 @@ from pathlib import Path
 
 import pytest
 
-from netlab import hostsim, kernel, naming
+from netlab import cleanup, hostsim, kernel, manifest, naming
+from netlab.errors import NetlabError
+from netlab.hosts import HostError, Ssh
 from netlab.hostsim import SimHosts
+from netlab.spanlab import SpanLab
 
 pytestmark = pytest.mark.root
 
 REPO = Path(__file__).resolve().parents[2]
 BEACON = 1.0
-
-# A host's share of the lab, run over ssh; then per stdin line a JSON command:
-# ["lists"] (each robot's listing), ["partition", groups], ["merge"], or "down".
-PART = r"""
-import json, sys
-from pathlib import Path
-from netlab import naming
-from netlab.lab import Lab
-from netlab.vxlan import span_of
-from tests.support.radio import listed
-cfg = json.loads(sys.argv[1])
-span = span_of(cfg["lab"], cfg["local"], cfg["hosts"], vni=cfg["vni"])
-with Lab(cfg["name"], seed=7, fleet=3, span=span, workdir=Path(cfg["workdir"])) as lab:
-    for robot, index in cfg["mine"].items():
-        lab.add_robot(robot, index=index, pos=(5.0 * index, 0.0))
-    for robot, index in cfg["theirs"].items():
-        lab.add_remote(robot, mac=naming.mac_for(7, index), pos=(5.0 * index, 0.0))
-    lab.start_all(beacon_interval=float(cfg["beacon"]))
-    print(json.dumps("ready"), flush=True)
-    for line in sys.stdin:
-        cmd = json.loads(line)
-        if cmd == "down":
-            break
-        if cmd[0] == "lists":
-            print(json.dumps({r: sorted(listed(lab, r)) for r in cfg["mine"]}), flush=True)
-        elif cmd[0] == "partition":
-            lab.partition(cmd[1])
-            print(json.dumps("ok"), flush=True)
-        elif cmd[0] == "merge":
-            lab.merge()
-            print(json.dumps("ok"), flush=True)
-"""
-
-
-class Part:
-    """One host's share of the lab, driven over its ssh session's stdin and stdout."""
-
-    def __init__(self, sim: SimHosts, alias: str, cfg: dict[str, object]) -> None:
-        argv = ["env", f"PYTHONPATH={REPO}", sys.executable, "-c", PART, json.dumps(cfg)]
-        self.alias = alias
-        self.proc = subprocess.Popen(
-            sim.ssh_argv(alias, argv),
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-
-    def ask(self, cmd: object) -> object:
-        assert self.proc.stdin is not None and self.proc.stdout is not None
-        if cmd is not None:
-            self.proc.stdin.write(json.dumps(cmd) + "\n")
-            self.proc.stdin.flush()
-        line = self.proc.stdout.readline()
-        if not line:
-            err = self.proc.stderr.read() if self.proc.stderr else ""
-            raise AssertionError(f"host {self.alias}'s share of the lab ended: {err[-2000:]}")
-        return json.loads(line)
-
-    def down(self) -> None:
-        assert self.proc.stdin is not None
-        if self.proc.poll() is None:
-            self.proc.stdin.write(json.dumps("down") + "\n")
-            self.proc.stdin.close()
-        try:
-            self.proc.wait(60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5)
+ROBOTS = {"r1": "h1", "r2": "h1", "r3": "h2", "r4": "h2", "r5": "h3", "r6": "h3"}
 
 
 @pytest.fixture
-def parts(tmp_path: Path) -> Iterator[tuple[Part, Part]]:
+def sim(tmp_path: Path) -> Iterator[SimHosts]:
     missing = hostsim.needs()
     assert not missing, f"simulated hosts need {missing}: scripts/bootstrap.sh installs them"
-    with SimHosts(naming.unique_lab_name("h"), 2, tmp_path / "hosts") as sim:
-        lab = naming.unique_lab_name("x")
-        names = [naming.unique_lab_name("x"), naming.unique_lab_name("x")]
-        shares = [{"r1": 0, "r2": 1}, {"r3": 2, "r4": 3}]
-        started: list[Part] = []
-        try:
-            for i, host in enumerate(sim.hosts):
-                cfg = {
-                    "lab": lab,
-                    "name": names[i],
-                    "local": host.address,
-                    "hosts": [h.address for h in sim.hosts],
-                    "vni": 4243,
-                    "mine": shares[i],
-                    "theirs": shares[1 - i],
-                    "beacon": BEACON,
-                    "workdir": str(tmp_path / names[i]),
-                }
-                started.append(Part(sim, host.alias, cfg))
-            for part in started:
-                assert part.ask(None) == "ready"
-            yield started[0], started[1]
-        finally:
-            for part in started:
-                part.down()
-        left = [ns for ns in kernel.list_ns() if any(ns.startswith(f"nl-{n}-") for n in names)]
-        assert not left, f"namespaces left: {left}"
+    with SimHosts(naming.unique_lab_name("h"), 3, tmp_path / "hosts") as sim:
+        yield sim
 
 
-def listing(parts: tuple[Part, Part]) -> dict[str, set[str]]:
-    out: dict[str, set[str]] = {}
-    for part in parts:
-        got = part.ask(["lists"])
-        assert isinstance(got, dict)
-        out.update({r: set(v) for r, v in got.items()})
-    return out
+def span_lab(sim: SimHosts, tmp_path: Path) -> SpanLab:
+    hosts = [(Ssh(h.alias, sim.ssh_config, sys.executable), h.address)
+             for h in sim.hosts]  # fmt: skip
+    positions = {r: (2.0 * i, 0.0) for i, r in enumerate(ROBOTS)}
+    return SpanLab(naming.unique_lab_name("x"), hosts, ROBOTS, positions=positions,
+                   workdir=str(tmp_path / "parts"), env={"PYTHONPATH": str(REPO)})  # fmt: skip
 
 
 def until(what: str, ok: Callable[[], bool], within: float) -> float:
@@ -144,29 +53,79 @@ def until(what: str, ok: Callable[[], bool], within: float) -> float:
     return time.monotonic() - t0
 
 
-def test_robots_on_two_hosts_find_each_other_split_along_the_hosts_and_merge(
-    parts: tuple[Part, Part],
+def lists(lab: SpanLab) -> dict[str, set[str]]:
+    return {r: lab.neighbors(r) for r in ROBOTS}
+
+
+def no_namespaces_of(lab: SpanLab) -> None:
+    names = lab.part_names().values()
+    left = [ns for ns in kernel.list_ns() if any(ns.startswith(naming.prefix(n)) for n in names)]
+    assert not left, f"namespaces left: {left}"
+
+
+def test_six_robots_on_three_hosts_find_each_other_split_along_the_hosts_merge_and_roam(
+    sim: SimHosts, tmp_path: Path
 ) -> None:
-    everyone = {"r1", "r2", "r3", "r4"}
-    sides = [["r1", "r2"], ["r3", "r4"]]
-    all_all = until(
-        "every robot lists the three others, across hosts",
-        lambda: all(v == everyone - {r} for r, v in listing(parts).items()),
-        30 * BEACON,
-    )
-    for part in parts:
-        assert part.ask(["partition", sides]) == "ok"
-    split = until(
-        "each robot lists only its own host's other robot",
-        lambda: all(v == set(s) - {r} for s in sides for r, v in listing(parts).items() if r in s),
-        3 * BEACON + 1.5,  # as on one host (fleet-behaviour.md, row 5)
-    )
-    for part in parts:
-        assert part.ask(["merge"]) == "ok"
-    merged = until(
-        "after the merge every robot lists the three others again",
-        lambda: all(v == everyone - {r} for r, v in listing(parts).items()),
-        BEACON + 2.0,
-    )
-    print(f"\nacross 2 hosts: all list all {all_all:.2f} s after start; split seen in "
-          f"{split:.2f} s; merged in {merged:.2f} s (beacon {BEACON:.0f} s)")  # fmt: skip
+    everyone = set(ROBOTS)
+    sides = [["r1", "r2"], ["r3", "r4"], ["r5", "r6"]]
+    with span_lab(sim, tmp_path) as lab:
+        t0 = time.monotonic()
+        lab.start_all(beacon_interval=BEACON)
+        started = time.monotonic() - t0
+        all_all = until(
+            "every robot lists the five others, across hosts",
+            lambda: all(v == everyone - {r} for r, v in lists(lab).items()),
+            10 * BEACON,
+        )
+        lab.partition(sides)
+        split = until(
+            "each robot lists only its own host's other robot",
+            lambda: all(lists(lab)[s[0]] == {s[1]} and lists(lab)[s[1]] == {s[0]} for s in sides),
+            3 * BEACON + 1.5,  # as on one host (docs/fleet-behaviour.md, row 5)
+        )
+        lab.merge()
+        merged = until(
+            "after the merge every robot lists the five others again",
+            lambda: all(v == everyone - {r} for r, v in lists(lab).items()),
+            BEACON + 2.0,
+        )
+        lab.move("r6", (500.0, 0.0))  # out of everyone's range, on every host's map
+        gone = until(
+            "r6, walked out of range, is dropped by all and lists nobody",
+            lambda: (
+                lab.neighbors("r6") == set()
+                and all("r6" not in v for r, v in lists(lab).items() if r != "r6")
+            ),
+            3 * BEACON + 1.5,
+        )
+    no_namespaces_of(lab)
+    print(f"\nacross 3 hosts: healthy in {started:.2f} s, all list all {all_all:.2f} s later; "
+          f"split seen in {split:.2f} s; merged in {merged:.2f} s; out of range dropped in "
+          f"{gone:.2f} s (beacon {BEACON:.0f} s)")  # fmt: skip
+
+
+def test_a_host_lost_before_down_is_named_and_the_others_are_cleaned_up(
+    sim: SimHosts, tmp_path: Path
+) -> None:
+    lab = span_lab(sim, tmp_path)
+    lost = r"host h3: down: (its agent ended|cannot be reached)"
+    with pytest.raises(HostError, match=lost), lab:
+        lab.start_all(beacon_interval=BEACON)
+        # h3 dies: its sshd and every process of its sessions (its agent) go at once.
+        sim.kill_sshd("h3")
+        inode = kernel.ns_inode(sim.hosts[2].ns)
+        assert inode is not None
+        killed = cleanup.kill_inside({inode})
+        assert killed, "no process of h3's session was found"
+    names = lab.part_names()
+    left = [ns for ns in kernel.list_ns() if ns.startswith(naming.prefix(names["h3"]))]
+    assert left, "h3's share was not left behind (nothing to find after a host is lost)"
+    for other in ("h1", "h2"):
+        assert not [ns for ns in kernel.list_ns() if ns.startswith(naming.prefix(names[other]))]
+    # What a lost host leaves is swept by `netlab down` there, as after any crash.
+    try:
+        cleanup.sweep(names["h3"], manifest.load(names["h3"]))
+        manifest.remove(names["h3"])
+    except NetlabError as exc:
+        pytest.fail(f"the sweep of h3's share failed: {exc}")
+    no_namespaces_of(lab)
