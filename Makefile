@@ -121,7 +121,13 @@ compose-down:
 
 # The ROS node's environments: .venv/ros2 (ROS 2 wheels from PyPI, sdfr_msgs built with cmake)
 # and .venv/ros1 (Debian's ROS 1, sdfr_msgs generated with genpy). Idempotent; root for apt.
-.PHONY: ros-setup test-ros bench-ros
+.PHONY: ros-setup test-ros bench-ros test-hosts
+
+# Labs across hosts alone (make test runs them too, in the host tier): hosts simulated as
+# namespaces with their own sshd, reached over ssh (netlab/hostsim.py; root, openssh-server).
+test-hosts: $(STAMP)
+	$(BIN)/pytest -q tests/ns/test_hostsim.py tests/ns/test_span.py tests/ns/test_hosts.py \
+		tests/ns/test_lab_across_hosts.py
 ros-setup: $(STAMP)
 	bash scripts/ros2-setup.sh
 	bash scripts/ros1-setup.sh
