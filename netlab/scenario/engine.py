@@ -414,6 +414,7 @@ class Run:
             "robots": len(self.sc.names),
             "runtime": self.sc.runtime,
             "medium": self.sc.medium,
+            "air_medium": self.sc.air_medium if self.sc.medium == "radio" else None,
             "beacon_interval_s": self.sc.beacon,
             "quick": self.quick,
             "status": result.status,

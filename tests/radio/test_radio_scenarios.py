@@ -72,8 +72,9 @@ def startup_line(result: scenario.RunResult, report: dict[str, Any]) -> str:
     )
 
 
-def check_air(report: dict[str, Any], eapol: bool) -> None:
+def check_air(report: dict[str, Any], eapol: bool, air_medium: str = "netlab") -> None:
     assert report["meta"]["medium"] == "radio"
+    assert report["meta"]["air_medium"] == air_medium
     air = report["air"]
     robots = [k for k in air["by_transmitter"] if k.startswith("r")]
     assert robots == ["r1", "r2", "r3", "r4"], list(air["by_transmitter"])  # named, not MACs
@@ -108,7 +109,7 @@ def test_a_robot_walks_out_of_range_and_back_then_a_partition_and_merge(tmp_path
 
 def test_four_robots_start_up_in_a_mesh(tmp_path: Path) -> None:
     result, report = run("radio-startup", tmp_path / "run", air_medium="hwsim", wifi_mode="mesh")
-    check_air(report, eapol=False)
+    check_air(report, eapol=False, air_medium="hwsim")
     print(
         f"\nradio-startup mesh (hwsim's medium): {startup_line(result, report)}; run "
         f"{result.duration:.0f} s; {traffic_line(report)}"
