@@ -27,6 +27,7 @@ import shlex
 import shutil
 import signal
 import subprocess
+import tempfile
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -120,6 +121,9 @@ class SimHosts:
         self.ssh_config = workdir / "ssh_config"
         self.identity = workdir / "id_ed25519"
         self._sshd: dict[str, subprocess.Popen[bytes]] = {}
+        #: Where ssh's shared connections to these hosts live (short: a socket path is at
+        #: most 107 bytes), apart from any other simulation's that had the same addresses.
+        self.control_dir = Path(tempfile.mkdtemp(prefix="nl-ssh-"))
 
     # -- up and down ---------------------------------------------------------------------
 
@@ -163,6 +167,10 @@ class SimHosts:
                 proc.kill()
                 proc.wait(5)
         self._sshd.clear()
+        for sock in self.control_dir.glob("*"):  # masters whose host is gone end with it
+            sock.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self.control_dir.rmdir()
         subprocess.run(["ip", "link", "del", self.veth], capture_output=True, check=False)
         for ns in [h.ns for h in self.hosts] + [self.underlay_ns]:
             kernel.remove_ns(ns)

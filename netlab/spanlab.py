@@ -185,6 +185,7 @@ class SpanLab:
                 failed.append(str(exc))
             finally:
                 part.close()
+                part.ssh.close()
         self.parts.clear()
         if failed:
             raise HostError("; ".join(failed))

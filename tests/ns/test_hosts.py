@@ -30,7 +30,7 @@ def sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimHosts]:
 
 
 def ssh(sim: SimHosts, alias: str, python: str = sys.executable) -> Ssh:
-    return Ssh(alias, sim.ssh_config, python)
+    return Ssh(alias, sim.ssh_config, python, control_dir=sim.control_dir)
 
 
 def test_hosts_that_can_take_part_pass_with_their_clock(sim: SimHosts) -> None:
