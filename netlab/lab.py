@@ -63,7 +63,6 @@ from sdfr.client import Client
 
 #: Seconds the radio medium may take to start and register (a Python start, under emulation).
 AIR_START_TIMEOUT = 60.0
-#: A radio lab's media: netlab's own (the range model), or hwsim's (all hear all).
 
 __all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "SUN_PATH_MAX", "Lab", "Robot", "RobotRef"]
 
