@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
-from netlab import kernel, naming
+from netlab import cleanup, kernel, naming
 from netlab.errors import NetlabError
 
 SSHD = "/usr/sbin/sshd"
@@ -167,7 +167,11 @@ class SimHosts:
                 proc.kill()
                 proc.wait(5)
         self._sshd.clear()
-        for sock in self.control_dir.glob("*"):  # masters whose host is gone end with it
+        # What the sessions left running on the hosts (an agent, sshd's per-connection
+        # processes): killed, so that the controller's shared connections end now.
+        inodes = {i for i in (kernel.ns_inode(h.ns) for h in self.hosts) if i is not None}
+        cleanup.kill_inside(inodes)
+        for sock in self.control_dir.glob("*"):
             sock.unlink(missing_ok=True)
         with contextlib.suppress(OSError):
             self.control_dir.rmdir()
