@@ -262,6 +262,9 @@ class SimHosts:
             "UsePAM no",
             "StrictModes no",
             "MaxSessions 64",
+            # A session whose controller vanished with the underlay ends within 15 s.
+            "ClientAliveInterval 5",
+            "ClientAliveCountMax 3",
             "MaxStartups 64:30:128",
             "Subsystem sftp internal-sftp",
             "AcceptEnv LANG LC_*",
