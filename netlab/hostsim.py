@@ -188,14 +188,7 @@ class SimHosts:
     # -- the pieces ------------------------------------------------------------------------
 
     def _run(self, argv: Sequence[str], doing: str) -> str:
-        try:
-            done = subprocess.run(list(argv), capture_output=True, text=True, timeout=30)
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            raise NetlabError(f"simulated hosts: {doing}: {exc}") from None
-        if done.returncode != 0:
-            said = (done.stderr or done.stdout).strip()
-            raise NetlabError(f"simulated hosts: {doing}: {said}")
-        return done.stdout
+        return kernel.run_argv(argv, f"simulated hosts: {doing}")
 
     def _keys(self) -> None:
         for key in (self.identity, self.workdir / "host_ed25519"):

@@ -104,10 +104,12 @@ def ipv4_only(name: str) -> None:
         set_sysctl("net.ipv6.conf.default.disable_ipv6", "1")
 
 
-def bring_up(name: str, ifname: str, address: IPv4Interface | None, doing: str) -> None:
-    """Bring up lo and `ifname` of namespace `name`, give `ifname` `address` (None: none) and
-    the link-scope multicast route: without a default route a namespace cannot send or join
-    multicast."""
+def bring_up(
+    name: str, ifname: str, address: IPv4Interface | None, doing: str, mtu: int | None = None
+) -> None:
+    """Bring up lo and `ifname` of namespace `name`, give `ifname` `address` (None: none),
+    its `mtu` (None: as it is) and the link-scope multicast route: without a default route a
+    namespace cannot send or join multicast."""
     ipr = open_ns(name)
     try:
         with kernel_errors(doing):
@@ -117,6 +119,8 @@ def bring_up(name: str, ifname: str, address: IPv4Interface | None, doing: str) 
                 ipr.addr(
                     "add", index=index, address=str(address.ip), prefixlen=address.network.prefixlen
                 )
+            if mtu is not None:
+                ipr.link("set", index=index, mtu=mtu)
             ipr.link("set", index=index, state="up")
             ipr.route("add", dst="224.0.0.0/4", oif=index, scope=RT_SCOPE_LINK)
     finally:
@@ -132,9 +136,15 @@ def ns_argv(name: str, argv: Sequence[str]) -> list[str]:
 
 def run_in_ns(name: str, argv: Sequence[str], doing: str, stdin: str | None = None) -> str:
     """Run `argv` in namespace `name` to completion; its stdout, or KernelError with stderr."""
+    return run_argv(ns_argv(name, argv), doing, stdin)
+
+
+def run_argv(argv: Sequence[str], doing: str, stdin: str | None = None) -> str:
+    """Run `argv` in this process's own namespace to completion; its stdout, or KernelError
+    with stderr."""
     with kernel_errors(doing):
         res = subprocess.run(
-            ns_argv(name, argv),
+            list(argv),
             input=stdin,
             capture_output=True,
             text=True,
@@ -142,15 +152,4 @@ def run_in_ns(name: str, argv: Sequence[str], doing: str, stdin: str | None = No
             check=True,
             stdin=None if stdin is not None else subprocess.DEVNULL,
         )
-    return res.stdout
-
-
-def run_argv(argv: Sequence[str], doing: str) -> str:
-    """Run `argv` in this process's own namespace to completion; its stdout, or KernelError
-    with stderr."""
-    with kernel_errors(doing):
-        res = subprocess.run(
-            list(argv), capture_output=True, text=True, timeout=60, check=True,
-            stdin=subprocess.DEVNULL,
-        )  # fmt: skip
     return res.stdout

@@ -345,7 +345,7 @@ class Lab(LabProcesses, LabMedium):
                 self.air_medium = "hwsim"
             else:
                 table = airmedium.read_links(self.air_links_file)
-                self._radio_addrs = {r: airmedium.mac_text(a) for a, r in table.radios.items()}
+                self._radio_addrs = {r: naming.mac_text(a) for a, r in table.radios.items()}
         self._state = "up"
 
     def _start_air(self) -> None:
@@ -515,13 +515,11 @@ class Lab(LabProcesses, LabMedium):
             self._save()
         else:
             self.medium.attach(robot.ns, robot.port, robot.mac)
-            if self.span is not None:  # room for VXLAN's header on the way to other hosts
-                argv = ["ip", "link", "set", robot.iface, "mtu", str(self.span.mtu)]
-                kernel.run_in_ns(robot.ns, argv, f"the MTU of robot {robot.name}")
         address = robot.address if self.addressing == "manual" else None
-        kernel.bring_up(
-            robot.ns, robot.iface, address, f"configuring {robot.iface} of robot {robot.name}"
-        )
+        # Across hosts, room for VXLAN's header on the way to the other hosts.
+        mtu = self.span.mtu if self.span is not None else None
+        doing = f"configuring {robot.iface} of robot {robot.name}"
+        kernel.bring_up(robot.ns, robot.iface, address, doing, mtu=mtu)
         return robot
 
     def add_remote(self, name: str, *, mac: str, pos: Pos = (0.0, 0.0)) -> None:

@@ -36,8 +36,7 @@ try:
     medium.span(span_of(cfg["lab"], cfg["local"], cfg["hosts"], vni=cfg["vni"]))
     kernel.create_ns(robot_ns).close()
     medium.attach(robot_ns, f"v{cfg['robot']}", cfg["mac"])
-    kernel.bring_up(robot_ns, "eth0", ipaddress.IPv4Interface(cfg["address"]), "robot")
-    kernel.run_in_ns(robot_ns, ["ip", "link", "set", "eth0", "mtu", "1450"], "mtu")
+    kernel.bring_up(robot_ns, "eth0", ipaddress.IPv4Interface(cfg["address"]), "robot", 1450)
     ports = {cfg["robot"]: f"v{cfg['robot']}"}
     print("ready", flush=True)
     for line in sys.stdin:
