@@ -59,6 +59,7 @@ from typing import Any
 
 from netlab import hwsim
 from netlab.errors import NetlabError
+from netlab.naming import mac_text
 from netlab.ranges import Links
 
 #: Seconds between two looks at the links file while frames flow.
@@ -101,10 +102,6 @@ def mac_bytes(text: str) -> bytes:
     if len(parts) != 6 or len(raw) != 6 or any(len(p) != 2 for p in parts):
         raise ValueError(f"not a MAC address (aa:bb:cc:dd:ee:ff): {text!r}")
     return raw
-
-
-def mac_text(raw: bytes) -> str:
-    return ":".join(f"{b:02x}" for b in raw)
 
 
 def perm_address(hwsim_addr: str) -> str:

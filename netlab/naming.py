@@ -100,6 +100,11 @@ def port(robot: str) -> str:
     return f"v{robot}"
 
 
+def mac_text(raw: bytes) -> str:
+    """6 bytes as ``aa:bb:cc:dd:ee:ff``."""
+    return ":".join(f"{b:02x}" for b in raw)
+
+
 def mac_for(seed: int, index: int) -> str:
     """A locally administered unicast MAC, the same for the same seed and robot index."""
     digest = hashlib.sha256(f"netlab-mac:{seed}:{index}".encode()).digest()

@@ -36,6 +36,7 @@ from typing import Any
 
 from netlab.capture import CaptureInfo
 from netlab.errors import NetlabError
+from netlab.naming import mac_text
 
 __all__ = [
     "ARP",
@@ -248,26 +249,20 @@ def _air_record(
         if ethertype in _READ_ON:
             return None
         kind = EAPOL if ethertype == _ETH_EAPOL else WIFI_DATA
-    src_mac = _mac(frame[10:16]) if has_addr2 else ""
-    dst_mac = _mac(frame[4:10])
-    direction = "" if own_mac is None or not src_mac else TX if src_mac == own_mac else RX
+    src_mac = mac_text(frame[10:16]) if has_addr2 else ""
     return Record(
         time=t,
         capture=label,
-        direction=direction,
+        direction=_direction(src_mac, own_mac),
         kind=kind,
         src_mac=src_mac,
-        dst_mac=dst_mac,
+        dst_mac=mac_text(frame[4:10]),
         src="",
         dst="",
         multicast=bool(frame[4] & 1),
         frame_len=wirelen - rt_len,
         msg_type=str(_dot11_subtypes.get(ftype, {}).get(subtype, subtype)),
     )
-
-
-def _mac(raw: bytes) -> str:
-    return ":".join(f"{b:02x}" for b in raw)
 
 
 def read_run(
@@ -321,7 +316,7 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
     else:
         src_mac = str(getattr(pkt, "src", "") or "").lower() if _is_ether(pkt) else ""
         dst_mac = str(getattr(pkt, "dst", "") or "").lower() if _is_ether(pkt) else ""
-    direction = "" if own_mac is None or not src_mac else TX if src_mac == own_mac else RX
+    direction = _direction(src_mac, own_mac)
 
     def make(**kw: Any) -> Record:
         return Record(
@@ -384,6 +379,12 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
         ping=view.get("ping"),
         reason=view.get("reason"),
     )
+
+
+def _direction(src_mac: str, own_mac: str | None) -> str:
+    """TX when the capture's own interface sent the frame, RX when another did; "" when the
+    capture has no own interface (the medium's) or the frame no sender (an ACK)."""
+    return "" if own_mac is None or not src_mac else TX if src_mac == own_mac else RX
 
 
 def _dot11(pkt: Any) -> Any:
