@@ -100,6 +100,7 @@ def test_a_robot_walks_out_of_range_and_back_then_a_partition_and_merge(tmp_path
     stats = json.loads((tmp_path / "run" / "logs" / "air-medium.json").read_text())
     assert stats["frames"] > 0 and stats["delivered"] > 0 and stats["acked"] > 0, stats
     assert stats["unknown_sender"] == 0 and stats["send_errors"] == 0, stats
+    assert stats["priority"] == "SCHED_FIFO 10", stats  # the air does not wait for the robots
     took = {c.description: c.took for c in result.checks}
     times = "; ".join(f"{k}: {v:.1f} s" for k, v in took.items() if v is not None)
     print(

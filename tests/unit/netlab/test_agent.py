@@ -7,6 +7,8 @@ from __future__ import annotations
 import io
 import json
 
+import pytest
+
 from netlab import agent
 
 
@@ -33,3 +35,14 @@ def test_each_request_gets_one_answer_saying_what_was_wrong() -> None:
     assert str(got[2]["error"]).startswith("no operation 'reboot' (one of up, add_robot,")
     assert got[3]["error"] == "no lab here yet: `up` first"
     assert str(got[4]["error"]).startswith("move: bad request: TypeError:")
+
+
+def test_the_share_goes_down_when_the_session_ends_without_down(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The controller died or the connection dropped: stdin ends, and the agent takes its
+    share of the lab down all the same."""
+    downs: list[bool] = []
+    monkeypatch.setattr(agent.Agent, "down", lambda self: downs.append(True))
+    assert [a["ok"] for a in answers('{"op": "merge"}')] == [False]  # no lab yet
+    assert downs == [True]
