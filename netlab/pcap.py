@@ -1,5 +1,9 @@
-"""Captured frames as records: `read_pcap` streams a pcap (scapy's `PcapReader`, with the
-`netlab.sdfr_layer.SDfR` layer) into one `Record` per SDfR datagram, ARP frame or other frame.
+"""Captured frames as records: `read_pcap` streams a pcap into one `Record` per SDfR datagram,
+ARP frame or other frame.  A classic pcap of Ethernet or radiotap frames is read from the
+frames' headers, its SDfR datagrams through `netlab.datagram.describe` (the daemon's own
+parser); scapy (with the `netlab.sdfr_layer.SDfR` layer) dissects only the frames those
+readers leave to it, and pcapng files.  Both ways give the same records (test_analysis.py,
+test_air_capture.py).
 
 Direction.  A robot's capture (its ``eth0``) holds what it sent and what reached it: a frame
 is ``tx`` when its source MAC is the interface's own (from the ``.json`` that
@@ -35,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from netlab.capture import CaptureInfo
+from netlab.datagram import PORT, view
 from netlab.errors import NetlabError
 from netlab.naming import mac_text
 
@@ -134,12 +139,6 @@ def read_pcap(
     by `netlab.capture.Capture`) says, else the file name without extension, no MAC, "robot".
     Without a MAC, or for the medium, records have no direction.
     """
-    import scapy.layers.dot11  # noqa: F401  (radiotap, 802.11: a radio lab's air.pcap)
-    from scapy.error import Scapy_Exception
-    from scapy.utils import PcapReader
-
-    import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
-
     path = Path(path)
     meta = _sidecar(path)
     label = label or str(meta.get("label") or path.stem)
@@ -151,22 +150,169 @@ def read_pcap(
     except OSError as exc:
         raise PcapError(f"cannot read {path}: {exc}") from None
     mac = own_mac if role != "medium" else None
-    if _link_type(path) == DLT_RADIOTAP:
+    link = _link_type(path)
+    if link == DLT_RADIOTAP:
         yield from _read_air(path, label, mac)
-        return
+    elif link == DLT_EN10MB:
+        yield from _read_ether(path, label, mac)
+    else:  # pcapng, or another link type: scapy's reader and dissection
+        yield from _read_scapy(path, label, mac)
+
+
+def _read_scapy(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:
+    """Every frame dissected by scapy (`_record`): for what `_read_ether` does not read."""
+    import scapy.layers.dot11  # noqa: F401  (radiotap, 802.11)
+    from scapy.error import Scapy_Exception
+    from scapy.utils import PcapReader
+
+    import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
+
     try:
         reader = PcapReader(str(path))
     except (Scapy_Exception, OSError) as exc:
         raise PcapError(f"{path} is not a pcap file: {exc}") from None
     with reader:
         for pkt in reader:
-            rec = _record(pkt, label, mac)
+            rec = _record(pkt, label, own_mac)
             if rec is not None:
                 yield rec
 
 
-#: pcap's link type of radiotap + 802.11 (hwsim0's).
+def _frames(path: Path) -> Iterator[tuple[bytes, float, int]]:
+    """A classic pcap's frames: (bytes as captured, time, length on the wire)."""
+    try:
+        f = path.open("rb")
+    except OSError as exc:
+        raise PcapError(f"cannot read {path}: {exc}") from None
+    with f:
+        head = f.read(24)
+        order, scale = _MAGIC[head[:4]]
+        rec = struct.Struct(order + "IIII")
+        while True:
+            raw = f.read(16)
+            if len(raw) < 16:  # the end, or a record cut short by a kill
+                return
+            sec, frac, caplen, wirelen = rec.unpack(raw)
+            data = f.read(caplen)
+            if len(data) < caplen:
+                return
+            yield data, sec + frac / scale, wirelen
+
+
+def _read_ether(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:
+    """An Ethernet capture's records, read from the frames' headers (`_ether_record`); scapy
+    dissects only what that leaves to it (IPv6, fragments, ICMP, VLANs...).  (scapy took about
+    a millisecond a frame here, and that much again per frame fifty times over in the
+    emulated VM of the VM tiers.)"""
+    for data, t, wirelen in _frames(path):
+        rec = _ether_record(data, t, wirelen, label, own_mac)
+        if rec is None:
+            from scapy.layers.l2 import Ether
+
+            import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
+
+            pkt = Ether(data)
+            pkt.time, pkt.wirelen = t, wirelen
+            rec = _record(pkt, label, own_mac)
+        if rec is not None:
+            yield rec
+
+
+#: IP protocols read as "other" without scapy (TCP, IGMP); UDP is read on.
+_OTHER_PROTOCOLS = (6, 2)
+
+
+def _ether_record(
+    data: bytes, t: float, wirelen: int, label: str, own_mac: str | None
+) -> Record | None:
+    """The record of one Ethernet frame from its headers, as `_record` makes it through
+    scapy; None when only scapy can tell (anything but ARP over IPv4 and unfragmented IPv4
+    carrying UDP, TCP or IGMP, or a frame cut short)."""
+    if len(data) < 14:
+        return None
+    src_mac, dst_mac = mac_text(data[6:12]), mac_text(data[0:6])
+    ethertype = int.from_bytes(data[12:14], "big")
+    direction = _direction(src_mac, own_mac)
+
+    def make(**kw: Any) -> Record:
+        return Record(
+            time=t,
+            capture=label,
+            direction=direction,
+            src_mac=src_mac,
+            dst_mac=dst_mac,
+            frame_len=wirelen,
+            **kw,
+        )
+
+    if ethertype == 0x0806:
+        if len(data) < 42 or data[14:20] != b"\x00\x01\x08\x00\x06\x04":
+            return None
+        return make(
+            kind=ARP,
+            src=_ipv4(data[28:32]),
+            dst=_ipv4(data[38:42]),
+            multicast=False,
+            msg_type="ARP",
+            arp_op=int.from_bytes(data[20:22], "big"),
+        )
+    if ethertype != 0x0800 or len(data) < 34 or data[14] >> 4 != 4:
+        return None
+    ihl = (data[14] & 0xF) * 4
+    total = int.from_bytes(data[16:18], "big")
+    frag = int.from_bytes(data[20:22], "big")
+    proto = data[23]
+    if ihl < 20 or frag & 0x3FFF or total < ihl or len(data) < 14 + total:
+        return None  # options cut short, a fragment, or the frame cut short: scapy's
+    src, dst = _ipv4(data[26:30]), _ipv4(data[30:34])
+    if proto in _OTHER_PROTOCOLS:
+        return make(kind=OTHER, src=src, dst=dst, multicast=_multicast(dst))
+    if proto != 17 or total < ihl + 8:
+        return None
+    udp = data[14 + ihl : 14 + total]
+    sport, dport, ulen = struct.unpack_from("!HHH", udp)
+    if PORT not in (sport, dport):
+        return make(kind=OTHER, src=src, dst=dst, multicast=_multicast(dst))
+    if ulen < 8:
+        return None
+    fields = view(udp[8:ulen])
+    return make(
+        kind=SDFR,
+        src=src,
+        dst=dst,
+        multicast=_multicast(dst),
+        payload_len=ulen - 8,
+        sport=sport,
+        dport=dport,
+        msg_type=str(fields.get("msg_type") or "Reject"),
+        robot=fields.get("robot"),
+        fleet=fields.get("fleet"),
+        boot=fields.get("boot"),
+        version=fields.get("version"),
+        part=fields.get("part"),
+        parts=fields.get("parts"),
+        services=fields.get("services"),
+        seq=fields.get("seq"),
+        ping=fields.get("ping"),
+        reason=fields.get("reason"),
+    )
+
+
+@lru_cache(maxsize=4096)
+def _ipv4(raw: bytes) -> str:
+    return ".".join(str(b) for b in raw)
+
+
+#: pcap's link types: Ethernet (a robot's or the wired medium's), radiotap + 802.11 (hwsim0's).
+DLT_EN10MB = 1
 DLT_RADIOTAP = 127
+#: A classic pcap's magic: byte order and the timestamps' fraction (micro- or nanoseconds).
+_MAGIC = {
+    b"\xd4\xc3\xb2\xa1": ("<", 1e6),
+    b"\x4d\x3c\xb2\xa1": ("<", 1e9),
+    b"\xa1\xb2\xc3\xd4": (">", 1e6),
+    b"\xa1\xb2\x3c\x4d": (">", 1e9),
+}
 _SNAP = b"\xaa\xaa\x03\x00\x00\x00"
 #: Ethertypes read on through scapy (like an Ethernet frame's), and EAPOL's.
 _READ_ON = (0x0800, 0x86DD, 0x0806)
@@ -180,11 +326,9 @@ def _link_type(path: Path) -> int | None:
             head = f.read(24)
     except OSError as exc:
         raise PcapError(f"cannot read {path}: {exc}") from None
-    if len(head) < 24:
+    if len(head) < 24 or head[:4] not in _MAGIC:
         return None
-    order = {b"\xd4\xc3\xb2\xa1": "<", b"\x4d\x3c\xb2\xa1": "<"}.get(head[:4])
-    order = order or {b"\xa1\xb2\xc3\xd4": ">", b"\xa1\xb2\x3c\x4d": ">"}.get(head[:4])
-    return None if order is None else int(struct.unpack_from(order + "I", head, 20)[0])
+    return int(struct.unpack_from(_MAGIC[head[:4]][0] + "I", head, 20)[0])
 
 
 def _read_air(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:

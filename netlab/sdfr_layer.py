@@ -9,7 +9,7 @@ The datagram itself is the `load` field (so ``pkt[UDP].load`` works as with a Ra
 building a packet emits `load` unchanged.  Make one from a message with
 ``SDfR(sdfr.wire.encode(msg))``.
 
-`describe` gives the same fields without scapy packets, for code that has the bytes.
+`netlab.datagram.describe` gives the same fields without scapy, for code that has the bytes.
 """
 
 from __future__ import annotations
@@ -20,52 +20,9 @@ from scapy.fields import Field
 from scapy.layers.inet import UDP
 from scapy.packet import Packet, bind_layers
 
-from sdfr import wire
-from sdfr.protocol import auth
+from netlab.datagram import MSG_TYPES, PORT, VIEW_FIELDS, describe, view
 
 __all__ = ["MSG_TYPES", "PORT", "SDfR", "describe"]
-
-PORT = wire.DEFAULT_PORT
-#: Every value of the `msg_type` field.
-MSG_TYPES = (*(kind.capitalize() for kind in wire.MESSAGE_TYPES), "Reject")
-_METHODS = {"M-SEARCH": "M-SEARCH", "NOTIFY": "NOTIFY", "HTTP/1.1": "RESPONSE"}
-
-
-def describe(data: bytes) -> dict[str, object]:
-    """The `SDfR` field values for one datagram (a Reject says why it is not acceptable).
-
-    `part` is 0-based like `sdfr.wire.Update.part`; on the wire it is ``part+1/parts``.
-    """
-    line = data.split(b"\n", 1)[0].strip().decode("latin-1")[:80]
-    out: dict[str, Any] = dict.fromkeys(_VIEW_FIELDS)
-    out["start"] = line
-    out["method"] = _METHODS.get(line.split(" ", 1)[0], "")
-    msg = wire.decode(data)
-    out["msg_type"] = type(msg).__name__
-    sealed = auth.seal_of(data)
-    if sealed is not None:  # which key signed it, and its counter (not checked: no key here)
-        out["key"] = sealed.kid
-        out["counter"] = sealed.counter
-    if isinstance(msg, wire.Reject):
-        out["reason"] = msg.reason
-        out["detail"] = msg.detail
-        return out
-    origin = msg.origin
-    if origin is not None:
-        out["robot"] = origin.robot_id
-        out["fleet"] = origin.fleet
-        out["boot"] = origin.boot_id
-        out["version"] = origin.version
-    if isinstance(msg, wire.Update):
-        out["part"] = msg.part
-        out["parts"] = msg.parts
-        out["services"] = len(msg.services)
-    if isinstance(msg, wire.Discovery | wire.Response):
-        out["st"] = msg.st
-        out["seq"] = msg.seq
-    if isinstance(msg, wire.Response):
-        out["ping"] = msg.ping
-    return out
 
 
 class _ViewField(Field[Any, Any]):
@@ -109,27 +66,6 @@ class _LoadField(Field[Any, Any]):
         return b"", s
 
 
-_VIEW_FIELDS = (
-    "start",
-    "method",
-    "msg_type",
-    "robot",
-    "fleet",
-    "boot",
-    "version",
-    "part",
-    "parts",
-    "services",
-    "st",
-    "seq",
-    "ping",
-    "key",
-    "counter",
-    "reason",
-    "detail",
-)
-
-
 class SDfR(Packet):
     """One SDfR (or plain SSDP) datagram; the fields are read-only views of `load`.
 
@@ -142,15 +78,11 @@ class SDfR(Packet):
     """
 
     name = "SDfR"
-    fields_desc: ClassVar[list[Any]] = [*(_ViewField(n) for n in _VIEW_FIELDS), _LoadField("load")]
+    fields_desc: ClassVar[list[Any]] = [*(_ViewField(n) for n in VIEW_FIELDS), _LoadField("load")]
 
     def do_dissect(self, s: bytes) -> bytes:
         data = bytes(s)
-        try:
-            values = describe(data)
-        except Exception as exc:  # describe is total; this only guards against a bug in it
-            values = dict.fromkeys(_VIEW_FIELDS)
-            values.update(msg_type="Reject", reason="bad-value", detail=f"internal error: {exc}")
+        values = view(data)
         # Only what the datagram has: None fields stay at their default, out of repr().
         self.fields.update((k, v) for k, v in values.items() if v is not None)
         self.fields["load"] = data
