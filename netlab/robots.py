@@ -40,6 +40,7 @@ from typing import Any, ClassVar, Protocol
 from netlab import docker, kernel, naming
 from netlab.errors import kernel_errors
 from sdfr.config.load import option_flags
+from sdfr.daemon import MALLOC_TUNABLES, own_malloc_settings
 from sdfr.host import procfs
 
 RUNTIMES = ("namespace", "docker")
@@ -152,6 +153,15 @@ class RobotKind(ABC):
         """`argv` run inside the robot (`stdin`: it reads standard input)."""
 
 
+def daemon_env() -> dict[str, str] | None:
+    """sdfrd's environment: netlab's, with glibc's malloc tunables sdfrd would set itself
+    (`sdfr.daemon.pin_malloc`), sparing each daemon the exec that sets them: one interpreter
+    start fewer per robot. None (netlab's own, unchanged) when the user set any of them."""
+    if own_malloc_settings(os.environ):
+        return None
+    return {**os.environ, "GLIBC_TUNABLES": MALLOC_TUNABLES}
+
+
 class NamespaceKind(RobotKind):
     """A namespace netlab makes; sdfrd as a host process inside it."""
 
@@ -179,6 +189,7 @@ class NamespaceKind(RobotKind):
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
+                env=daemon_env(),
             )
         return Started(proc, argv)
 

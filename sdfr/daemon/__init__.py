@@ -19,12 +19,18 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Mapping
 
 #: Modules sdfrd's processes never load (see the module docstring).
 NOT_LOADED = ("ssl", "_ssl", "_hashlib", "typing_extensions")
 
 #: glibc's default mmap threshold, pinned (see `pin_malloc`).
 MALLOC_TUNABLES = "glibc.malloc.mmap_threshold=131072"
+
+
+def own_malloc_settings(env: Mapping[str, str]) -> bool:
+    """Whether `env` has malloc settings of its user's (which sdfrd leaves alone)."""
+    return bool(env.get("GLIBC_TUNABLES")) or any(k.startswith("MALLOC_") for k in env)
 
 
 def pin_malloc() -> None:
@@ -39,7 +45,7 @@ def pin_malloc() -> None:
     pid, same argv); a user's own GLIBC_TUNABLES or MALLOC_* settings are left alone, as is
     a C library that is not glibc.
     """
-    if os.environ.get("GLIBC_TUNABLES") or any(k.startswith("MALLOC_") for k in os.environ):
+    if own_malloc_settings(os.environ):
         return
     if not sys.executable or not sys.orig_argv:  # (an embedded interpreter: nothing to exec)
         return

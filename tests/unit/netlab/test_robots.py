@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import os
 from ipaddress import IPv4Interface
 from pathlib import Path
 
 import pytest
 
-from netlab import docker
+from netlab import docker, robots
 from netlab.errors import NetlabError
 from netlab.lab import Lab
 from netlab.robots import ContainerKind, Robot, daemon_container, kind_for
 from sdfr.config.load import option_flags
+from sdfr.daemon import MALLOC_TUNABLES
 
 
 def robot(tmp_path: Path, runtime: str = "docker") -> Robot:
@@ -73,3 +75,21 @@ def test_unknown_runtimes_are_refused_naming_the_known_ones() -> None:
         Lab("x", runtime="vm")
     with pytest.raises(ValueError, match="one of namespace, docker"):
         kind_for("vm")
+
+
+def test_sdfrd_starts_with_its_malloc_tunables_unless_the_user_set_their_own(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """netlab sets what sdfrd's pin_malloc would (one exec fewer per robot), and leaves a
+    user's own malloc settings to sdfrd, which leaves them alone too."""
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
+    for key in [k for k in os.environ if k.startswith("MALLOC_")]:
+        monkeypatch.delenv(key)
+    env = robots.daemon_env()
+    assert env is not None and env["GLIBC_TUNABLES"] == MALLOC_TUNABLES
+    assert env["PATH"] == os.environ["PATH"]
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "2")
+    assert robots.daemon_env() is None
+    monkeypatch.delenv("MALLOC_ARENA_MAX")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2")
+    assert robots.daemon_env() is None
