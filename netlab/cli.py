@@ -336,6 +336,11 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument(
         "--no-report", action="store_true", help="no report.json and plots (run.json still)"
     )
+    rn.add_argument(
+        "--no-plots",
+        action="store_true",
+        help="report.json without its PNGs (faster; `netlab report RUN` draws them later)",
+    )
     rn.add_argument("--lab", type=_lab_name, metavar="NAME", help="lab name (default: made unique)")
 
     cap = sub.add_parser("capture", help="capture a robot's (or the medium's) traffic to pcap")
@@ -425,6 +430,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         quick=args.quick,
         capture="none" if args.no_capture else None,
         report=not args.no_report,
+        plots=not args.no_plots,
         runtime=args.runtime,
         image=args.image,
         medium=args.medium,

@@ -29,7 +29,7 @@ from typing import Any
 from netlab import analysis
 from netlab import plots as draw
 from netlab.capture import CaptureInfo
-from netlab.paper import paper_measure, run_conditions
+from netlab.paper import RunConditions, paper_measure, run_conditions
 from netlab.pcap import Record, capture_infos, read_run
 from netlab.samples import AgreementSample, ConnectivitySample
 
@@ -49,8 +49,10 @@ def write_report(
     connectivity_samples: Sequence[ConnectivitySample | Mapping[str, Any]] | None = None,
     agreement_samples: Sequence[AgreementSample | Mapping[str, Any]] | None = None,
     meta: Mapping[str, Any] | None = None,
+    plots: bool = True,
 ) -> dict[str, object]:
     """Write ``report.json`` and the plots into `run_dir`; return what ``report.json`` holds.
+    Without `plots` its ``plots`` are empty (`netlab report RUN` draws them later).
 
     `records=None` reads every ``*.pcap`` in `run_dir`.  `meta` (JSON-serialisable) is copied
     into the report; its ``start``/``end`` (UNIX seconds) or ``duration_s`` set the run's
@@ -97,6 +99,33 @@ def write_report(
     if agree:
         report["agreement"] = _agreement_summary(agree)
 
+    if plots:
+        _draw(run_dir, report, recs, conn, agree, meta, conditions, start, end)
+
+    text = json.dumps(report, indent=2, sort_keys=False, default=_json_default) + "\n"
+    tmp = run_dir / (REPORT_JSON + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(run_dir / REPORT_JSON)
+    result: dict[str, Any] = json.loads(text)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# The report's parts: its window, its captures, the summaries of the samples
+
+
+def _draw(
+    run_dir: Path,
+    report: dict[str, Any],
+    recs: Sequence[Record],
+    conn: Sequence[ConnectivitySample],
+    agree: Sequence[AgreementSample],
+    meta: Mapping[str, Any],
+    conditions: RunConditions,
+    start: float,
+    end: float,
+) -> None:
+    """The run's PNGs, each named in ``report["plots"]``."""
     plots: dict[str, str] = report["plots"]
     # A run folder named after its scenario (the demo's) is named with its parent's.
     run = run_dir.name if run_dir.name != meta.get("scenario") else run_dir.absolute().parent.name
@@ -121,17 +150,6 @@ def write_report(
         plots["agreement"] = draw.save(
             draw.agreement(agree, start, timeline), run_dir / "agreement.png", timeline
         )
-
-    text = json.dumps(report, indent=2, sort_keys=False, default=_json_default) + "\n"
-    tmp = run_dir / (REPORT_JSON + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(run_dir / REPORT_JSON)
-    result: dict[str, Any] = json.loads(text)
-    return result
-
-
-# ---------------------------------------------------------------------------------------------
-# The report's parts: its window, its captures, the summaries of the samples
 
 
 def _time(rec: Record) -> float:

@@ -96,7 +96,7 @@ class Run:
 
     # -- the run -------------------------------------------------------------------------------
 
-    def execute(self, *, report: bool) -> RunResult:
+    def execute(self, *, report: bool, plots: bool = True) -> RunResult:
         start_wall = self.clock.time()
         self.t0 = self.clock.monotonic()
         captures: list[Capture] = []
@@ -136,7 +136,7 @@ class Run:
             beacon=self.sc.beacon,
             duration=self.elapsed(),
         )
-        self._finish(result, report)
+        self._finish(result, report, plots)
         return result
 
     def _add_robots(self) -> None:
@@ -346,7 +346,7 @@ class Run:
 
     # -- after the run -------------------------------------------------------------------------
 
-    def _finish(self, result: RunResult, report: bool) -> None:
+    def _finish(self, result: RunResult, report: bool, plots: bool) -> None:
         records = None
         if self.captured and (self.history.deferred or report):
             try:
@@ -371,7 +371,7 @@ class Run:
         if report:
             try:
                 result.report = write_report(
-                    self.run_dir, records, self.samples, self.truth.states(), lag, meta
+                    self.run_dir, records, self.samples, self.truth.states(), lag, meta, plots
                 )
             except ImportError as exc:
                 self._say(f"  report not written: {missing_extra(exc, 'the report')}")
@@ -380,7 +380,9 @@ class Run:
         self._say("")
         for line in result.summary():
             self._say(line)
-        files = "report.json and plots" if result.report is not None else "no report"
+        files = "no report"
+        if result.report is not None:
+            files = "report.json and plots" if plots else "report.json; no plots"
         kept = "pcaps, " if self.captured else ""
         self._say(f"run folder: {self.run_dir} ({files}; {kept}run.json, logs/)")
 
@@ -465,6 +467,7 @@ def run(
     quick: bool = False,
     capture: str | None = None,
     report: bool = True,
+    plots: bool = True,
     say: Callable[[str], None] = _say,
     backend: Backend | None = None,
     runtime: str | None = None,
@@ -475,8 +478,8 @@ def run(
 
     The run folder is `run_dir`, or a new ``runs/<name>-<time>``.  `quick` uses the steps'
     `quick` durations; `capture`, `runtime` and `medium` override the scenario's; `image` is
-    the robot image of the docker runtime.  Skipped (status "skipped", with the reason said) when
-    sdfrd lacks an option the scenario needs.
+    the robot image of the docker runtime; without `plots` the report has no PNGs.  Skipped
+    (status "skipped", with the reason said) when sdfrd lacks an option the scenario needs.
     """
     backend = backend or Backend()
     if capture is not None:
@@ -518,4 +521,4 @@ def run(
     folder.mkdir(parents=True, exist_ok=True)
     say(f"{head}{', quick' if quick else ''}; run folder {folder}")
     engine = Run(scenario, backend, folder, spec, quick, say)
-    return engine.execute(report=report)
+    return engine.execute(report=report, plots=plots)

@@ -58,8 +58,10 @@ def write_report(
     truth: Sequence[TruthState],
     lag: float,
     meta: Mapping[str, Any],
+    plots: bool = True,
 ) -> dict[str, Any]:
-    """``report.json`` and the plots from the captures' records and the observer's samples."""
+    """``report.json`` and (with `plots`) the plots from the captures' records and the
+    observer's samples."""
     from netlab.report import write_report as write
 
     stats = agreement(samples, truth, lag=lag)
@@ -69,6 +71,7 @@ def write_report(
         connectivity_samples=connectivity(samples, truth) if samples else None,
         agreement_samples=stats.per_sample or None,
         meta=meta,
+        plots=plots,
     )
 
 

@@ -35,7 +35,7 @@ def run(name: str, folder: Path, **sdfrd: Any) -> tuple[scenario.RunResult, dict
     sc = scenario.load(scenario.find(name))
     if sdfrd:
         sc = replace(sc, sdfrd={**sc.sdfrd, **sdfrd})
-    result = scenario.run(sc, run_dir=folder, quick=True)
+    result = scenario.run(sc, run_dir=folder, quick=True, plots=False)
     assert result.ok, "\n".join([f"scenario {name} {result.status}:", *result.summary()])
     report = json.loads((folder / "report.json").read_text())
     return result, report
@@ -114,7 +114,7 @@ def test_the_same_range_scenario_on_the_wired_medium_in_the_same_vm(tmp_path: Pa
     figures the radio's are set beside in docs/fleet-behaviour.md, measured alike."""
     sc = replace(scenario.load(scenario.find("radio-range")), medium="wired")
     folder = tmp_path / "run"
-    result = scenario.run(sc, run_dir=folder, quick=True)
+    result = scenario.run(sc, run_dir=folder, quick=True, plots=False)
     assert result.ok, "\n".join(["radio-range on the wired medium:", *result.summary()])
     report = json.loads((folder / "report.json").read_text())
     assert report["meta"]["medium"] == "wired" and "air" not in report

@@ -540,6 +540,18 @@ def test_report_writes_json_and_plots(run: dict[str, Any]) -> None:
         assert is_png(out_dir / name), name
 
 
+def test_a_report_without_plots_is_the_same_json_and_no_png(run: dict[str, Any]) -> None:
+    """`netlab run --no-plots` (for CI and the emulated VM tiers): report.json as with plots,
+    but for its empty ``plots``, and no PNG drawn."""
+    recs = pcap.read_run(run["dir"])
+    meta = {"scenario": "synthetic", "start": T0, "duration_s": 3.0}
+    with_plots = write_report(run["dir"] / "a", records=recs, meta=meta)
+    without = write_report(run["dir"] / "b", records=recs, meta=meta, plots=False)
+    assert without["plots"] == {} and with_plots["plots"]
+    assert {**without, "plots": with_plots["plots"]} == with_plots
+    assert not list((run["dir"] / "b").glob("*.png"))
+
+
 def test_report_reads_the_run_dir_and_copes_with_nothing(
     run: dict[str, Any], tmp_path: Path
 ) -> None:
