@@ -336,25 +336,18 @@ def _read_air(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:
     dissects only a data frame in the clear that carries IP or ARP.  (Dissecting every frame
     with scapy, beacons and their elements included, took 5 ms a frame here, and minutes per
     run in the radio tier's emulated VM.)"""
-    from scapy.error import Scapy_Exception
-    from scapy.layers.dot11 import RadioTap
-    from scapy.utils import RawPcapReader
+    for data, t, wirelen in _frames(path):
+        rec = _air_record(data, t, wirelen, label, own_mac)
+        if rec is None:
+            from scapy.layers.dot11 import RadioTap
 
-    try:
-        reader = RawPcapReader(str(path))
-    except (Scapy_Exception, OSError) as exc:
-        raise PcapError(f"{path} is not a pcap file: {exc}") from None
-    scale = 1e9 if getattr(reader, "nano", False) else 1e6
-    with reader:
-        for data, meta in reader:
-            t = meta.sec + meta.usec / scale
-            rec = _air_record(data, t, int(meta.wirelen), label, own_mac)
-            if rec is None:
-                pkt = RadioTap(data)
-                pkt.time, pkt.wirelen = t, meta.wirelen
-                rec = _record(pkt, label, own_mac)
-            if rec is not None:
-                yield rec
+            import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
+
+            pkt = RadioTap(data)
+            pkt.time, pkt.wirelen = t, wirelen
+            rec = _record(pkt, label, own_mac)
+        if rec is not None:
+            yield rec
 
 
 def _air_record(
