@@ -83,8 +83,29 @@ default_limit=900
 limit=${SDFR_VM_TIMEOUT:-$default_limit}
 pytest_args=("$@")
 [ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s "tests/$tier")
+hot_dirs=("tests/$tier")
 
 res=$(mktemp -d -t sdfr-$me.XXXXXX)
+
+# The guest reads the host's files over 9p with no page cache, under emulation: each Python
+# process reads libpython and every module it imports through the emulated device again.
+# The files the tier's Python processes read at start (scripts/vm_hot.py) go into the
+# guest's memory, laid over their folders (about twice as fast a start; see vm_hot.py).
+# Without them (a failure here, or in the guest) the tier runs as before, only slower.
+hot_roots=""
+if .venv/bin/python scripts/vm_hot.py "${hot_dirs[@]}" >"$res/hot.list" 2>"$res/hot.err" &&
+    sed 's,^/,,' "$res/hot.list" | tar -C / -cf "$res/hot.tar" -T - 2>>"$res/hot.err"; then
+    base=$(.venv/bin/python -c 'import os, sys; print(os.path.realpath(sys.base_prefix))')
+    real=$(pwd -P)
+    hot_roots=$( {
+        echo "$real"
+        echo "$base"
+        grep -v -e "^$real/" -e "^$base/" "$res/hot.list" | xargs -r -n1 dirname
+    } | sort -u | tr '\n' ' ')
+else
+    echo "$me: the files Python reads at start stay on 9p (slower):" \
+        "$(tail -n 1 "$res/hot.err")" >&2
+fi
 keep_root=${SDFR_KEEP_LOGS:-${TMPDIR:-/tmp}}
 mkdir -p "$keep_root"
 keep=$(mktemp -d "$keep_root/sdfr-$me-logs.XXXXXX")
@@ -136,6 +157,17 @@ trap 'echo "$me: terminated, stopping the VM" >&2; exit 143' TERM
     echo 'echo "vm: up after $(cut -d" " -f1 /proc/uptime)s: kernel $(uname -r), $(nproc) cpu"'
     printf 'if ! %s; then touch "$res/no-module"; exit 0; fi\n' "$modules"
     echo 'export PYTHONDONTWRITEBYTECODE=1 # the repository is read-only in the guest'
+    printf 'hot_roots=%q\n' "$hot_roots"
+    echo 'if [ -n "$hot_roots" ] && mkdir -p /run/sdfr-hot &&'
+    echo '    mount -t tmpfs -o mode=0755 sdfr-hot /run/sdfr-hot && tar -C /run/sdfr-hot -xf "$res/hot.tar"; then'
+    echo '    for d in $hot_roots; do'
+    echo '        [ -d "/run/sdfr-hot$d" ] || continue'
+    echo '        mount -t overlay -o "ro,lowerdir=/run/sdfr-hot$d:$d" sdfr-hot "$d" ||'
+    echo '            echo "vm: $d stays on 9p (slower): no overlay" >&2'
+    echo '    done'
+    echo '    echo "vm: $(du -sh /run/sdfr-hot | cut -f1) of files Python reads at start in memory"'
+    printf '    cd %q # through the overlay\n' "$repo"
+    echo 'fi'
     printf 'export SDFR_KEEP_LOGS=%q # a failed test copies its lab folders there\n' "$keep"
     # The guest's /tmp is an overlay whose lower layer is the host's /tmp, live: pytest there
     # numbers its folder after the host's pytest-of-root/pytest-N and sweeps old ones, while the
