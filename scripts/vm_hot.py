@@ -11,8 +11,9 @@ Usage: python scripts/vm_hot.py TESTDIR...  prints one absolute path per line: t
 every module that importing the tier's test modules, pytest and the daemon's and netlab's
 run-time modules loads (source, bytecode, extension), the interpreter and the shared
 libraries it links.  Bytecode missing here (PYTHONDONTWRITEBYTECODE=1, or a fresh checkout)
-is compiled first: the guest cannot write it, and would compile every module in every process.  Run it with the interpreter the VM runs (.venv/bin/python), from the
-repository's root.  A module that cannot be imported here is left out (it is then read over
+is compiled first: the guest cannot write it, and would compile every module in every
+process.  Run it with the interpreter the VM runs (.venv/bin/python), from the repository's
+root.  A module that cannot be imported here is left out (it is then read over
 9p, as before): the list only makes the guest faster, never different.
 """
 
@@ -58,7 +59,7 @@ def main(folders: list[str]) -> int:
     for name in [*RUNTIME, *test_modules(folders)]:
         try:
             importlib.import_module(name)
-        except Exception as exc:  # noqa: BLE001 (left to 9p; say so)
+        except Exception as exc:  # left to 9p; said
             print(f"vm_hot: {name} not listed: {exc}", file=sys.stderr)
     paths: set[str] = set()
     for module in list(sys.modules.values()):
