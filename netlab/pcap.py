@@ -32,7 +32,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import struct
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -151,10 +151,8 @@ def read_pcap(
         raise PcapError(f"cannot read {path}: {exc}") from None
     mac = own_mac if role != "medium" else None
     link = _link_type(path)
-    if link == DLT_RADIOTAP:
-        yield from _read_air(path, label, mac)
-    elif link == DLT_EN10MB:
-        yield from _read_ether(path, label, mac)
+    if link in (DLT_EN10MB, DLT_RADIOTAP):
+        yield from _read_headers(path, link, label, mac)
     else:  # pcapng, or another link type: scapy's reader and dissection
         yield from _read_scapy(path, label, mac)
 
@@ -199,25 +197,6 @@ def _frames(path: Path) -> Iterator[tuple[bytes, float, int]]:
             yield data, sec + frac / scale, wirelen
 
 
-def _read_ether(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:
-    """An Ethernet capture's records, read from the frames' headers (`_ether_record`); scapy
-    dissects only what that leaves to it (IPv6, fragments, ICMP, VLANs...).  (scapy took about
-    a millisecond a frame here, and that much again per frame fifty times over in the
-    emulated VM of the VM tiers.)"""
-    for data, t, wirelen in _frames(path):
-        rec = _ether_record(data, t, wirelen, label, own_mac)
-        if rec is None:
-            from scapy.layers.l2 import Ether
-
-            import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
-
-            pkt = Ether(data)
-            pkt.time, pkt.wirelen = t, wirelen
-            rec = _record(pkt, label, own_mac)
-        if rec is not None:
-            yield rec
-
-
 #: IP protocols read as "other" without scapy (TCP, IGMP); UDP is read on.
 _OTHER_PROTOCOLS = (6, 2)
 
@@ -232,19 +211,7 @@ def _ether_record(
         return None
     src_mac, dst_mac = mac_text(data[6:12]), mac_text(data[0:6])
     ethertype = int.from_bytes(data[12:14], "big")
-    direction = _direction(src_mac, own_mac)
-
-    def make(**kw: Any) -> Record:
-        return Record(
-            time=t,
-            capture=label,
-            direction=direction,
-            src_mac=src_mac,
-            dst_mac=dst_mac,
-            frame_len=wirelen,
-            **kw,
-        )
-
+    make = _maker(t, label, src_mac, dst_mac, wirelen, own_mac)
     if ethertype == 0x0806:
         if len(data) < 42 or data[14:20] != b"\x00\x01\x08\x00\x06\x04":
             return None
@@ -275,7 +242,6 @@ def _ether_record(
         return make(kind=OTHER, src=src, dst=dst, multicast=_multicast(dst))
     if ulen < 8:
         return None
-    fields = view(udp[8:ulen])
     return make(
         kind=SDFR,
         src=src,
@@ -284,17 +250,7 @@ def _ether_record(
         payload_len=ulen - 8,
         sport=sport,
         dport=dport,
-        msg_type=str(fields.get("msg_type") or "Reject"),
-        robot=fields.get("robot"),
-        fleet=fields.get("fleet"),
-        boot=fields.get("boot"),
-        version=fields.get("version"),
-        part=fields.get("part"),
-        parts=fields.get("parts"),
-        services=fields.get("services"),
-        seq=fields.get("seq"),
-        ping=fields.get("ping"),
-        reason=fields.get("reason"),
+        **_datagram(view(udp[8:ulen])),
     )
 
 
@@ -331,23 +287,31 @@ def _link_type(path: Path) -> int | None:
     return int(struct.unpack_from(_MAGIC[head[:4]][0] + "I", head, 20)[0])
 
 
-def _read_air(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:
-    """A radiotap capture's records: the 802.11 header read directly (`_air_record`); scapy
-    dissects only a data frame in the clear that carries IP or ARP.  (Dissecting every frame
-    with scapy, beacons and their elements included, took 5 ms a frame here, and minutes per
-    run in the radio tier's emulated VM.)"""
+def _read_headers(path: Path, link: int, label: str, own_mac: str | None) -> Iterator[Record]:
+    """A classic pcap's records, each frame read from its headers (`_ether_record`,
+    `_air_record`); scapy dissects only what those leave to it (IPv6, fragments, ICMP, VLANs;
+    an 802.11 data frame in the clear carrying IP or ARP).  (scapy took about a millisecond an
+    Ethernet frame here, 5 ms an 802.11 frame, and fifty times that in the VM tiers' emulated
+    VM, minutes per run.)"""
+    direct = _air_record if link == DLT_RADIOTAP else _ether_record
     for data, t, wirelen in _frames(path):
-        rec = _air_record(data, t, wirelen, label, own_mac)
+        rec = direct(data, t, wirelen, label, own_mac)
         if rec is None:
-            from scapy.layers.dot11 import RadioTap
-
-            import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
-
-            pkt = RadioTap(data)
-            pkt.time, pkt.wirelen = t, wirelen
-            rec = _record(pkt, label, own_mac)
+            rec = _record(_dissect(data, link, t, wirelen), label, own_mac)
         if rec is not None:
             yield rec
+
+
+def _dissect(data: bytes, link: int, t: float, wirelen: int) -> Any:
+    """scapy's dissection of one frame of a capture of link type `link`."""
+    from scapy.layers.dot11 import RadioTap
+    from scapy.layers.l2 import Ether
+
+    import netlab.sdfr_layer  # noqa: F401  (binds the SDfR layer to UDP port 1900)
+
+    pkt = RadioTap(data) if link == DLT_RADIOTAP else Ether(data)
+    pkt.time, pkt.wirelen = t, wirelen
+    return pkt
 
 
 def _air_record(
@@ -453,19 +417,7 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
     else:
         src_mac = str(getattr(pkt, "src", "") or "").lower() if _is_ether(pkt) else ""
         dst_mac = str(getattr(pkt, "dst", "") or "").lower() if _is_ether(pkt) else ""
-    direction = _direction(src_mac, own_mac)
-
-    def make(**kw: Any) -> Record:
-        return Record(
-            time=t,
-            capture=label,
-            direction=direction,
-            src_mac=src_mac,
-            dst_mac=dst_mac,
-            frame_len=frame_len,
-            **kw,
-        )
-
+    make = _maker(t, label, src_mac, dst_mac, frame_len, own_mac)
     wifi = _wifi_kind(pkt, air) if air is not None else None
     if wifi is not None:
         group = bool(dst_mac) and int(dst_mac[:2], 16) & 1 == 1
@@ -486,15 +438,15 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
         return make(kind=OTHER, src="", dst="", multicast=False)
     src, dst = str(ip.src), str(ip.dst)
     udp = pkt.getlayer(UDP)
-    if udp is None or 1900 not in (udp.sport, udp.dport):
+    if udp is None or PORT not in (udp.sport, udp.dport):
         return make(kind=OTHER, src=src, dst=dst, multicast=_multicast(dst))
     layer = udp.getlayer(SDfR)
     if layer is not None:
         data: bytes = layer.load
-        view: Mapping[str, Any] = layer.fields
+        fields: Mapping[str, Any] = layer.fields
     else:  # e.g. an empty payload, or a first fragment
         data = bytes(udp.payload)
-        view = describe(data)
+        fields = describe(data)
     size = int(udp.len) - 8 if udp.len is not None and int(udp.len) >= 8 else len(data)
     return make(
         kind=SDFR,
@@ -504,18 +456,41 @@ def _record(pkt: Any, label: str, own_mac: str | None) -> Record | None:
         payload_len=size,
         sport=int(udp.sport),
         dport=int(udp.dport),
-        msg_type=str(view.get("msg_type") or "Reject"),
-        robot=view.get("robot"),
-        fleet=view.get("fleet"),
-        boot=view.get("boot"),
-        version=view.get("version"),
-        part=view.get("part"),
-        parts=view.get("parts"),
-        services=view.get("services"),
-        seq=view.get("seq"),
-        ping=view.get("ping"),
-        reason=view.get("reason"),
+        **_datagram(fields),
     )
+
+
+def _maker(
+    t: float, label: str, src_mac: str, dst_mac: str, frame_len: int, own_mac: str | None
+) -> Callable[..., Record]:
+    """Records of one frame: its time, capture, direction, MACs and length set."""
+    direction = _direction(src_mac, own_mac)
+
+    def make(**kw: Any) -> Record:
+        return Record(
+            time=t,
+            capture=label,
+            direction=direction,
+            src_mac=src_mac,
+            dst_mac=dst_mac,
+            frame_len=frame_len,
+            **kw,
+        )
+
+    return make
+
+
+#: The fields of an SDfR datagram's view that a record carries as they are.
+_DATAGRAM_FIELDS = ("robot", "fleet", "boot", "version", "part", "parts", "services", "seq",
+                    "ping", "reason")  # fmt: skip
+
+
+def _datagram(fields: Mapping[str, Any]) -> dict[str, Any]:
+    """A record's SDfR fields from a datagram's view (`netlab.datagram.view`)."""
+    return {
+        "msg_type": str(fields.get("msg_type") or "Reject"),
+        **{k: fields.get(k) for k in _DATAGRAM_FIELDS},
+    }
 
 
 def _direction(src_mac: str, own_mac: str | None) -> str:
