@@ -317,6 +317,13 @@ def test_netlab_run_exits_by_the_checks(tmp_path: Path, capsys: pytest.CaptureFi
     assert "r1 lists {r2} but should list {}" in out and "tiny: FAILED" in out
     assert len(list(runs.glob("tiny-*/report.json"))) == 1
     assert len(list(runs.glob("tiny-*/run.json"))) == 2
+    assert list(runs.glob("tiny-*/*.png"))
+    # --no-plots: the report without its PNGs, and the run says so.
+    plain = tmp_path / "plain"
+    assert cli.main(["run", str(good), "--runs", str(plain), "--no-capture", "--no-plots"]) == 0
+    assert "(report.json; no plots;" in capsys.readouterr().out
+    assert len(list(plain.glob("tiny-*/report.json"))) == 1
+    assert not list(plain.glob("tiny-*/*.png"))
 
 
 def test_netlab_capture_on_a_lab_brought_up(
