@@ -59,8 +59,10 @@ def main(folders: list[str]) -> int:
     for name in [*RUNTIME, *test_modules(folders)]:
         try:
             importlib.import_module(name)
-        except Exception as exc:  # left to 9p; said
-            print(f"vm_hot: {name} not listed: {exc}", file=sys.stderr)
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # pytest's skip is one: left to 9p, and said
+            print(f"vm_hot: {name} not listed: {exc!r}", file=sys.stderr)
     paths: set[str] = set()
     for module in list(sys.modules.values()):
         file = getattr(module, "__file__", None)
