@@ -9,8 +9,9 @@ from netlab.lab import Lab
 from tests.support.waiting import poll
 
 
-def wait_until(what: str, ok: Callable[[], bool], timeout: float) -> float:
-    """Seconds until `ok()`, looking every 0.5 s (the VM is slow); fails saying `what`."""
+def wait_until(what: str, ok: Callable[[], bool | str], timeout: float) -> float:
+    """Seconds until `ok()` is True, looking every 0.5 s (the VM is slow); fails saying `what`
+    (and `ok`'s last answer when it says, as a string, what is not yet)."""
     return poll(what, ok, timeout, step=0.5)
 
 
