@@ -158,7 +158,8 @@ def read_pcap(
 
 
 def _read_scapy(path: Path, label: str, own_mac: str | None) -> Iterator[Record]:
-    """Every frame dissected by scapy (`_record`): for what `_read_ether` does not read."""
+    """Every frame dissected by scapy (`_record`): for what `_read_headers` does not read
+    (pcapng, other link types)."""
     import scapy.layers.dot11  # noqa: F401  (radiotap, 802.11)
     from scapy.error import Scapy_Exception
     from scapy.utils import PcapReader
