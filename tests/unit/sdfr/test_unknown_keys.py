@@ -9,6 +9,7 @@ import pytest
 
 from sdfr.daemon import unknownkeys
 from sdfr.daemon.unknownkeys import KEPT, LOG_EVERY, UnknownKeys
+from tests.support.memory import grown
 
 WINDOW = 30.0  # the default miss window: 3 beacons of 10 s
 
@@ -63,14 +64,8 @@ def test_a_flood_of_made_up_key_ids_costs_a_bounded_table() -> None:
         after = tracemalloc.take_snapshot()
     finally:
         tracemalloc.stop()
-    # Only what this table and this loop hold: another thread of the test process (a
-    # library's, pytest's) allocating meanwhile is not the table's growth.
-    ours = [tracemalloc.Filter(True, unknownkeys.__file__), tracemalloc.Filter(True, __file__)]
-    grown = sum(
-        s.size_diff
-        for s in after.filter_traces(ours).compare_to(before.filter_traces(ours), "filename")
-    )
-    assert grown < 4096, f"{grown} bytes more after 19,000 more key ids"
+    more = grown(before, after, [unknownkeys.__file__, __file__])
+    assert more < 4096, f"{more} bytes more after 19,000 more key ids"
     now = 1.0 + 20_000 * 1e-6
     kept = seen.recent(now)
     assert len(kept) == KEPT == 16
