@@ -8,10 +8,19 @@ is named with its type).  The agent holds one `Lab` with a `Span` (its robots, t
 hosts' robots as remote ones) and takes it down when told ``down``, when its stdin closes
 (the controller or the connection died) or on SIGTERM/SIGHUP.
 
-Operations: ``up`` (name, seed, fleet, radius, workdir, span: vni, local, hosts, port),
-``add_robot`` (name, index, pos), ``add_remote`` (name, mac, pos), ``start_all``
-(robots, timeout, options), ``stop`` (robot), ``move`` (robot, pos), ``partition`` (groups),
-``merge``, ``neighbors`` (robot: the robot ids its sdfrd lists), ``down``.
+Operations: ``up`` (name, seed, fleet, workdir, span: vni, local, hosts, port; range: the
+range model as `netlab.ranges.model_to_json` writes it, or radius: a unit disc's; runtime
+and image: the robots' kind, as `netlab.lab.Lab` takes them),
+``add_robot`` (name, index, pos, mac, runtime: its MAC), ``add_remote`` (name, mac, pos),
+``robot`` (robot: its ns, mac, iface and log here), the daemons' ``start_all`` (robots,
+timeout, options), ``start``, ``restart`` (robot, timeout, options), ``stop``, ``kill``
+(robot) and ``daemons_ended``, the medium's ``move`` (robot, pos), ``partition`` (groups),
+``merge``, ``set_pair_quality`` (a, b, loss, both), ``shape`` (robot, params) and ``batch``
+(ops: medium operations applied as one change), what it holds: ``links`` (the linked pairs
+whose receiver is here: each pair is judged on the receiving host), ``positions``,
+``read_log`` (robot: the tail of its daemon's log), a robot's daemon's API: ``api`` (robot,
+call, args; a refusal answers ``"api": {status, message, field}``) and ``neighbors``
+(robot: the robot ids its sdfrd lists), and ``down``.
 """
 
 from __future__ import annotations
@@ -26,6 +35,14 @@ from typing import Any, TextIO
 
 from netlab.errors import NetlabError
 from netlab.ranges import UnitDisc
+from sdfr.errors import ApiError
+
+#: What ``api`` may call of a robot's `sdfr.client.Client` (what the scenario engine asks).
+API_CALLS = ("neighbors", "history", "publish", "unpublish", "self_info")
+#: The operations ``batch`` applies as one change of the medium.
+MEDIUM_OPS = ("move", "partition", "merge", "set_pair_quality", "shape")
+#: ``read_log`` sends at most the last this many bytes of a log.
+LOG_TAIL = 8 << 20
 
 
 class Agent:
@@ -41,9 +58,11 @@ class Agent:
             raise NetlabError("no lab here yet: `up` first")
         return self.lab
 
-    def up(self, name: str, seed: int, fleet: int, radius: float, workdir: str,
-           span: dict[str, Any]) -> str:  # fmt: skip
+    def up(self, name: str, seed: int, fleet: int, workdir: str, span: dict[str, Any],
+           radius: float | None = None, range: dict[str, Any] | None = None,
+           runtime: str = "namespace", image: str | None = None) -> str:  # fmt: skip
         from netlab.lab import Lab
+        from netlab.ranges import RangeModel, model_from_json
         from netlab.vxlan import span_of
 
         if self.lab is not None:
@@ -51,15 +70,26 @@ class Agent:
         hosts = [str(h) for h in span["hosts"]]
         extra = {"port": int(span["port"])} if "port" in span else {}
         plan = span_of(str(span["lab"]), str(span["local"]), hosts, vni=int(span["vni"]), **extra)
-        lab = Lab(name, seed=seed, fleet=fleet, range_model=UnitDisc(radius),
-                  workdir=Path(workdir), span=plan)  # fmt: skip
+        model: RangeModel = (
+            model_from_json(range) if range is not None else UnitDisc(radius or 50.0)
+        )
+        kind: dict[str, Any] = {"runtime": runtime, **({"image": image} if image else {})}
+        lab = Lab(name, seed=seed, fleet=fleet, range_model=model, workdir=Path(workdir),
+                  span=plan, **kind)  # fmt: skip
         lab.up()
         self.lab = lab
         return lab.name
 
-    def add_robot(self, name: str, index: int, pos: list[float]) -> str:
-        robot = self._lab().add_robot(name, index=index, pos=(pos[0], pos[1]))
+    def add_robot(self, name: str, index: int, pos: list[float], mac: str | None = None,
+                  runtime: str | None = None) -> str:  # fmt: skip
+        robot = self._lab().add_robot(
+            name, index=index, pos=(pos[0], pos[1]), mac=mac, runtime=runtime
+        )
         return str(robot.mac)
+
+    def robot(self, robot: str) -> dict[str, str]:
+        r = self._lab().robot(robot)
+        return {"ns": r.ns, "mac": r.mac, "iface": r.iface, "log": str(r.log)}
 
     def add_remote(self, name: str, mac: str, pos: list[float]) -> None:
         self._lab().add_remote(name, mac=mac, pos=(pos[0], pos[1]))
@@ -67,8 +97,20 @@ class Agent:
     def start_all(self, robots: list[str], timeout: float, options: dict[str, Any]) -> None:
         self._lab().start_all(robots, timeout=timeout, **options)
 
+    def start(self, robot: str, timeout: float, options: dict[str, Any]) -> None:
+        self._lab().start(robot, timeout=timeout, **options)
+
+    def restart(self, robot: str, timeout: float, options: dict[str, Any]) -> None:
+        self._lab().restart(robot, timeout=timeout, **options)
+
     def stop(self, robot: str) -> int:
         return int(self._lab().stop(robot))
+
+    def kill(self, robot: str) -> None:
+        self._lab().kill(robot)
+
+    def daemons_ended(self) -> dict[str, str]:
+        return dict(self._lab().daemons_ended())
 
     def move(self, robot: str, pos: list[float]) -> None:
         self._lab().move(robot, (pos[0], pos[1]))
@@ -78,6 +120,44 @@ class Agent:
 
     def merge(self) -> None:
         self._lab().merge()
+
+    def set_pair_quality(self, a: str, b: str, loss: float | None, both: bool = True) -> None:
+        self._lab().set_pair_quality(a, b, loss=loss, both=both)
+
+    def shape(self, robot: str, params: dict[str, Any]) -> str:
+        return str(self._lab().shape(robot, **params))
+
+    def batch(self, ops: list[dict[str, Any]]) -> None:
+        bad = [op.get("op") for op in ops if op.get("op") not in MEDIUM_OPS]
+        if bad:
+            raise NetlabError(f"batch: {bad} are not medium operations ({', '.join(MEDIUM_OPS)})")
+        with self._lab().batch():
+            for op in ops:
+                kw = {k: v for k, v in op.items() if k != "op"}
+                getattr(self, str(op["op"]))(**kw)
+
+    def links(self) -> list[list[Any]]:
+        lab = self._lab()
+        here = set(lab.robots)
+        return [[a, b, loss] for (a, b), loss in lab.links().items() if b in here]
+
+    def positions(self) -> dict[str, list[float]]:
+        return {name: [x, y] for name, (x, y) in self._lab().positions().items()}
+
+    def read_log(self, robot: str) -> str | None:
+        log: Path = self._lab().robot(robot).log
+        try:
+            with log.open("rb") as f:
+                size = f.seek(0, os.SEEK_END)
+                f.seek(max(0, size - LOG_TAIL))
+                return f.read().decode(errors="replace")
+        except FileNotFoundError:
+            return None
+
+    def api(self, robot: str, call: str, args: dict[str, Any]) -> Any:
+        if call not in API_CALLS:
+            raise NetlabError(f"api: no call {call!r} (one of {', '.join(API_CALLS)})")
+        return getattr(self._lab().client(robot), call)(**args)
 
     def neighbors(self, robot: str) -> list[str]:
         return sorted(str(n["robot_id"]) for n in self._lab().client(robot).neighbors())
@@ -95,13 +175,17 @@ class Agent:
             return {"ok": False, "error": f"no operation {op!r} (one of {', '.join(OPS)})"}
         try:
             return {"ok": True, "result": method(**request)}
+        except ApiError as exc:
+            api = {"status": exc.status, "message": exc.message, "field": exc.field}
+            return {"ok": False, "error": str(exc), "api": api}
         except NetlabError as exc:
             return {"ok": False, "error": str(exc)}
         except (TypeError, ValueError, KeyError) as exc:
             return {"ok": False, "error": f"{op}: bad request: {type(exc).__name__}: {exc}"}
 
 
-OPS = ("up", "add_robot", "add_remote", "start_all", "stop", "move", "partition", "merge",
+OPS = ("up", "add_robot", "add_remote", "robot", "start_all", "start", "restart", "stop", "kill",
+       "daemons_ended", *MEDIUM_OPS, "batch", "links", "positions", "read_log", "api",
        "neighbors", "down")  # fmt: skip
 
 

@@ -3,8 +3,10 @@
 `SpanLab` spreads the robots over the hosts (given per host, or in turn), numbers them across
 the lab (addresses and MACs never collide between hosts), brings up each host's share with a
 `netlab.vxlan.Span` joining the media, tells every host where every other host's robots are,
-and sends each change of the medium (moves, partitions, the merge) to every host, so that each
-host judges the frames it receives by the same map.  Questions about a robot go to its host.
+and sends each change of the medium (moves, partitions, the merge, pair quality) to every
+host, so that each host judges the frames it receives by the same map.  Questions about a
+robot (its daemon, its API, its log, its shaping) go to its host.  It is a lab the scenario
+engine can run (`netlab.scenario.backend.LabLike`): `span_backend` makes one per run.
 
 Each host's share is a lab of its own name (``<lab><i>``... as given by `part_names`): on
 hosts simulated on one machine (`netlab.hostsim`) the shares' namespaces share one list.
@@ -19,16 +21,21 @@ from __future__ import annotations
 import contextlib
 import json
 import subprocess
-from collections.abc import Mapping, Sequence
+import threading
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 from netlab import naming
 from netlab.errors import NetlabError
 from netlab.hosts import HostError, Ssh
-from netlab.ranges import Pos
+from netlab.observe import ClientLike
+from netlab.ranges import Links, Pos, RangeModel, UnitDisc, model_to_json
+from netlab.scenario.backend import Backend, LabLike, LabSpec
 from netlab.vxlan import DEFAULT_PORT, vni_for
+from sdfr.errors import ApiError
 
 
 class Part:
@@ -41,20 +48,27 @@ class Part:
         self.proc = subprocess.Popen(
             argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
+        # One request at a time: the engine's observer asks from its own thread.
+        self._lock = threading.Lock()
 
     def call(self, op: str, **kw: Any) -> Any:
-        """One request; its result, or HostError naming the host and what it said."""
+        """One request; its result, or HostError naming the host and what it said (ApiError
+        when a robot's daemon refused an ``api`` call, as the client there raised it)."""
         assert self.proc.stdin is not None and self.proc.stdout is not None
-        try:
-            self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
-            self.proc.stdin.flush()
-        except (BrokenPipeError, OSError):
-            raise HostError(f"host {self.ssh.destination}: {op}: {self._ended()}") from None
-        line = self.proc.stdout.readline()
+        with self._lock:
+            try:
+                self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
+                self.proc.stdin.flush()
+            except (BrokenPipeError, OSError):
+                raise HostError(f"host {self.ssh.destination}: {op}: {self._ended()}") from None
+            line = self.proc.stdout.readline()
         if not line:
             raise HostError(f"host {self.ssh.destination}: {op}: {self._ended()}")
         answer = json.loads(line)
         if not answer.get("ok"):
+            api = answer.get("api")
+            if isinstance(api, dict):
+                raise ApiError(int(api["status"]), str(api["message"]), api.get("field"))
             raise HostError(f"host {self.ssh.destination}: {answer.get('error')}")
         return answer.get("result")
 
@@ -80,23 +94,93 @@ class Part:
             self.proc.wait(5)
 
 
+@dataclass(frozen=True, slots=True)
+class SpanRobot:
+    """A robot of a lab across hosts, as its host has it (its `log` is a path there)."""
+
+    name: str
+    host: str
+    ns: str
+    mac: str
+    iface: str
+    log: Path
+
+
+class SpanMedium:
+    """The medium of a lab across hosts is one per host: there is no one namespace to
+    capture in (a scenario on such a lab runs with ``capture = "none"``)."""
+
+    def __init__(self, lab: str) -> None:
+        self.lab = lab
+
+    @property
+    def ns(self) -> str:
+        raise NetlabError(
+            f"lab {self.lab} spans hosts: its medium has a namespace on each, none here"
+        )
+
+
+class AgentClient:
+    """A robot's daemon's API, asked through its host's agent (`netlab.observe.ClientLike`).
+    A host that cannot be asked is an ApiError too: the robot cannot be asked."""
+
+    def __init__(self, part: Part, robot: str) -> None:
+        self.part = part
+        self.robot = robot
+
+    def _call(self, call: str, **args: Any) -> Any:
+        try:
+            return self.part.call("api", robot=self.robot, call=call, args=args)
+        except HostError as exc:
+            raise ApiError(0, str(exc)) from None
+
+    def neighbors(self, include_unreachable: bool = False) -> list[dict[str, Any]]:
+        return list(self._call("neighbors", include_unreachable=include_unreachable))
+
+    def history(self) -> list[dict[str, Any]]:
+        return list(self._call("history"))
+
+    def publish(self, name: str, type: str, url: str | None = None,
+                attributes: Mapping[str, Any] | None = None) -> str:  # fmt: skip
+        attrs = dict(attributes) if attributes is not None else None
+        return str(self._call("publish", name=name, type=type, url=url, attributes=attrs))
+
+    def unpublish(self, service_id: str) -> None:
+        self._call("unpublish", service_id=service_id)
+
+    def self_info(self) -> dict[str, object]:
+        return dict(self._call("self_info"))
+
+    def close(self) -> None:
+        pass
+
+
 @dataclass(slots=True)
 class SpanLab:
-    """`robots` spread over `hosts` (ssh destinations with their underlay addresses)."""
+    """Robots spread over `hosts` (ssh destinations with their underlay addresses).
+
+    `robots` places robots on hosts by name; a robot added without a place goes to the host
+    with the fewest robots so far (the first such, in the order of `hosts`).
+    """
 
     name: str
     hosts: Sequence[tuple[Ssh, str]]  # (how to reach it, its underlay address)
-    robots: Mapping[str, str]  # robot -> host destination
+    robots: Mapping[str, str] = field(default_factory=dict)  # robot -> host destination
     seed: int = 7
     fleet: int = 3
-    radius: float = 20.0
-    positions: Mapping[str, Pos] = field(default_factory=dict)
+    range_model: RangeModel = field(default_factory=lambda: UnitDisc(20.0))
+    positions_at_start: Mapping[str, Pos] = field(default_factory=dict)
     workdir: str = "/tmp"
+    runtime: str = "namespace"
+    image: str | None = None
     port: int = DEFAULT_PORT
     env: Mapping[str, str] = field(default_factory=dict)
     parts: dict[str, Part] = field(default_factory=dict)
+    placed: dict[str, str] = field(default_factory=dict)  # robot -> host, as added
     index: dict[str, int] = field(default_factory=dict)
     macs: dict[str, str] = field(default_factory=dict)
+    _robots: dict[str, SpanRobot] = field(default_factory=dict)
+    _pending: list[tuple[str | None, dict[str, Any]]] | None = None
 
     def part_names(self) -> dict[str, str]:
         """Each host's share's own lab name: the lab's, then the host's number (base 36)."""
@@ -105,9 +189,17 @@ class SpanLab:
 
     def host_of(self, robot: str) -> Part:
         try:
-            return self.parts[self.robots[robot]]
+            return self.parts[self.placed[robot]]
         except KeyError:
             raise NetlabError(f"lab {self.name} has no robot {robot!r}") from None
+
+    @property
+    def where(self) -> str:
+        return f"on one medium across {len(self.hosts)} hosts"
+
+    @property
+    def medium(self) -> SpanMedium:
+        return SpanMedium(self.name)
 
     def __enter__(self) -> SpanLab:
         try:
@@ -123,15 +215,22 @@ class SpanLab:
         self.down()
 
     def up(self) -> None:
+        """Every host's share up, joined by the span; then the robots of `robots`."""
         naming.check_lab_name(self.name)
         dests = [ssh.destination for ssh, _ in self.hosts]
+        if not dests:
+            raise NetlabError(f"lab {self.name}: a lab across hosts needs at least one host")
         unknown = sorted({h for h in self.robots.values() if h not in dests})
         if unknown:
             raise NetlabError(f"lab {self.name}: robots on unknown hosts {', '.join(unknown)}")
+        model = model_to_json(self.range_model)
+        if model is None:
+            raise NetlabError(
+                f"lab {self.name}: a lab across hosts sends its range model to each host; "
+                f"{type(self.range_model).__name__} cannot be sent (a unit or lossy disc can)"
+            )
         addrs = [addr for _, addr in self.hosts]
         names = self.part_names()
-        for i, name in enumerate(self.robots):
-            self.index[name] = i
         span = {"lab": self.name, "vni": vni_for(self.name), "hosts": addrs, "port": self.port}
         for ssh, addr in self.hosts:
             part = Part(ssh, self.env)
@@ -139,22 +238,116 @@ class SpanLab:
             workdir = f"{self.workdir}/{names[ssh.destination]}"
             here = {**span, "local": addr}
             part.call("up", name=names[ssh.destination], seed=self.seed, fleet=self.fleet,
-                      radius=self.radius, workdir=workdir, span=here)  # fmt: skip
-        for robot, host in self.robots.items():
-            pos = list(self.positions.get(robot, (0.0, 0.0)))
-            self.macs[robot] = self.parts[host].call(
-                "add_robot", name=robot, index=self.index[robot], pos=pos
-            )
-        for robot, host in self.robots.items():
-            pos = list(self.positions.get(robot, (0.0, 0.0)))
-            for dest, part in self.parts.items():
-                if dest != host:
-                    part.call("add_remote", name=robot, mac=self.macs[robot], pos=pos)
+                      range=model, workdir=workdir, span=here, runtime=self.runtime,
+                      image=self.image)  # fmt: skip
+        for robot in self.robots:
+            self.add_robot(robot, pos=self.positions_at_start.get(robot, (0.0, 0.0)))
 
-    def start_all(self, timeout: float = 60.0, **options: Any) -> None:
+    def _place(self, name: str) -> str:
+        if name in self.robots:
+            return self.robots[name]
+        count = {ssh.destination: 0 for ssh, _ in self.hosts}
+        for host in self.placed.values():
+            count[host] += 1
+        return min(count, key=lambda h: count[h])  # the first of the least loaded
+
+    def add_robot(self, name: str, *, pos: Pos = (0.0, 0.0), mac: str | None = None,
+                  runtime: str | None = None) -> SpanRobot:  # fmt: skip
+        """A robot on its host (numbered across the lab), known to the other hosts by its MAC
+        and position."""
+        if not self.parts:
+            raise NetlabError(f"lab {self.name} is not up")
+        if name in self.placed:
+            raise NetlabError(f"lab {self.name} already has a robot {name!r}")
+        host = self._place(name)
+        index = len(self.index)
+        got = self.parts[host].call("add_robot", name=name, index=index, pos=list(pos),
+                                    mac=mac, runtime=runtime)  # fmt: skip
+        self.index[name] = index
+        self.placed[name] = host
+        self.macs[name] = str(got)
         for dest, part in self.parts.items():
-            mine = [r for r, h in self.robots.items() if h == dest]
-            part.call("start_all", robots=mine, timeout=timeout, options=options)
+            if dest != host:
+                part.call("add_remote", name=name, mac=self.macs[name], pos=list(pos))
+        info = self.parts[host].call("robot", robot=name)
+        robot = SpanRobot(name, host, info["ns"], info["mac"], info["iface"], Path(info["log"]))
+        self._robots[name] = robot
+        return robot
+
+    def robot(self, ref: str) -> SpanRobot:
+        try:
+            return self._robots[ref]
+        except KeyError:
+            raise NetlabError(f"lab {self.name} has no robot {ref!r}") from None
+
+    def client(self, robot: str) -> AgentClient:
+        return AgentClient(self.host_of(robot), robot)
+
+    # -- daemons: on their robot's host ---------------------------------------------------------
+
+    def _mine(self, refs: Iterable[str] | None) -> dict[str, list[str]]:
+        names = list(self.placed) if refs is None else list(refs)
+        for name in names:
+            self.host_of(name)
+        return {d: [n for n in names if self.placed[n] == d] for d in self.parts}
+
+    def start_all(
+        self, refs: Iterable[str] | None = None, *, timeout: float = 60.0, **options: Any
+    ) -> None:
+        for dest, mine in self._mine(refs).items():
+            if mine:
+                self.parts[dest].call("start_all", robots=mine, timeout=timeout, options=options)
+
+    def start(self, ref: str, *, timeout: float = 30.0, **options: Any) -> None:
+        self.host_of(ref).call("start", robot=ref, timeout=timeout, options=options)
+
+    def restart(self, ref: str, *, timeout: float = 30.0, **options: Any) -> None:
+        self.host_of(ref).call("restart", robot=ref, timeout=timeout, options=options)
+
+    def stop(self, ref: str, timeout: float = 10.0) -> int:
+        return int(self.host_of(ref).call("stop", robot=ref))
+
+    def kill(self, ref: str) -> None:
+        self.host_of(ref).call("kill", robot=ref)
+
+    def daemons_ended(self) -> dict[str, str]:
+        ended: dict[str, str] = {}
+        for part in self.parts.values():
+            with contextlib.suppress(HostError):
+                ended.update(part.call("daemons_ended"))
+        return ended
+
+    def fetch_log(self, ref: str) -> str | None:
+        """The robot's daemon's log (its last 8 MiB), read on its host; None if it has none."""
+        got = self.host_of(ref).call("read_log", robot=ref)
+        return None if got is None else str(got)
+
+    # -- the medium: the same map on every host --------------------------------------------------
+
+    def _medium(self, host: str | None, op: str, **kw: Any) -> None:
+        if self._pending is not None:
+            self._pending.append((host, {"op": op, **kw}))
+        elif host is not None:
+            self.parts[host].call(op, **kw)
+        else:
+            self._everywhere(op, **kw)
+
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[None]:
+        """Every medium change made in the body sent at its end, as one change per host."""
+        if self._pending is not None:
+            yield
+            return
+        self._pending = []
+        try:
+            yield
+            pending = self._pending
+        finally:
+            self._pending = None
+        for dest, part in self.parts.items():
+            ops = [op for host, op in pending if host in (None, dest)]
+            if ops:
+                part.call("batch", ops=ops)
 
     def _everywhere(self, op: str, **kw: Any) -> None:
         for part in self.parts.values():
@@ -162,13 +355,42 @@ class SpanLab:
 
     def move(self, robot: str, pos: Pos) -> None:
         self.host_of(robot)
-        self._everywhere("move", robot=robot, pos=list(pos))
+        self._medium(None, "move", robot=robot, pos=list(pos))
 
-    def partition(self, groups: Sequence[Sequence[str]]) -> None:
-        self._everywhere("partition", groups=[list(g) for g in groups])
+    def partition(self, groups: Iterable[Iterable[str]]) -> None:
+        self._medium(None, "partition", groups=[list(g) for g in groups])
 
     def merge(self) -> None:
-        self._everywhere("merge")
+        self._medium(None, "merge")
+
+    def set_pair_quality(self, a: str, b: str, *, loss: float | None, both: bool = True) -> None:
+        self.host_of(a), self.host_of(b)
+        self._medium(None, "set_pair_quality", a=a, b=b, loss=loss, both=both)
+
+    def shape(self, ref: str, **params: Any) -> str:
+        """Shape the robot's link, on its host (what the shaping became there, said)."""
+        host = self.placed.get(ref)
+        if host is None:
+            raise NetlabError(f"lab {self.name} has no robot {ref!r}")
+        if self._pending is not None:
+            self._medium(host, "shape", robot=ref, params=params)
+            return "(applied with the batch)"
+        return str(self.parts[host].call("shape", robot=ref, params=params))
+
+    def links(self) -> Links:
+        """Ground truth: each linked (sender, receiver) pair with its loss in %, as the
+        receiver's host judges it."""
+        out: Links = {}
+        for part in self.parts.values():
+            for a, b, loss in part.call("links"):
+                out[(str(a), str(b))] = float(loss)
+        return out
+
+    def positions(self) -> dict[str, Pos]:
+        if not self.parts:
+            return {}
+        first = next(iter(self.parts.values()))
+        return {n: (float(p[0]), float(p[1])) for n, p in first.call("positions").items()}
 
     def neighbors(self, robot: str) -> set[str]:
         return set(self.host_of(robot).call("neighbors", robot=robot))
@@ -189,3 +411,43 @@ class SpanLab:
         self.parts.clear()
         if failed:
             raise HostError("; ".join(failed))
+
+
+def span_backend(
+    hosts: Sequence[tuple[Ssh, str]],
+    *,
+    robots: Mapping[str, str] | None = None,
+    workdir: str = "/tmp",
+    env: Mapping[str, str] | None = None,
+    port: int = DEFAULT_PORT,
+) -> Backend:
+    """The scenario engine's backend for runs on a lab across `hosts`: each run's lab is a
+    `SpanLab` (robots placed by `robots`, else spread), its robots' APIs asked through their
+    hosts' agents.  Captures are not made (the medium has no one namespace to capture in)."""
+    hosts = list(hosts)
+    placed = dict(robots or {})
+
+    def make(spec: LabSpec) -> LabLike:
+        refused = [
+            f"{what} = {value!r}"
+            for what, value, alone in (
+                ("medium", spec.medium, "wired"),
+                ("addressing", spec.addressing, "manual"),
+            )
+            if value != alone
+        ]
+        if refused:
+            raise NetlabError(
+                f"lab {spec.name}: a lab across hosts runs the wired medium with manual "
+                f"addressing; not {', '.join(refused)}"
+            )
+        return SpanLab(spec.name, hosts, placed, seed=spec.seed, fleet=spec.fleet,
+                       range_model=spec.range_model, workdir=workdir, runtime=spec.runtime,
+                       image=spec.image if spec.runtime == "docker" else None,
+                       port=port, env=dict(env or {}))  # fmt: skip
+
+    def connect(lab: LabLike, robot: str) -> ClientLike:
+        assert isinstance(lab, SpanLab)
+        return lab.client(robot)
+
+    return Backend(make_lab=make, connect=connect, can_capture=False)

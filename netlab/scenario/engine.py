@@ -145,7 +145,8 @@ class Run:
         self.fleet.record_truth()
         took = self.clock.monotonic() - t
         n = len(self.sc.names)
-        self.say(f"lab {self.lab.name} up: {n} robots on one medium in {took:.2f} s")
+        where = getattr(self.lab, "where", "on one medium")  # a lab across hosts says which
+        self.say(f"lab {self.lab.name} up: {n} robots {where} in {took:.2f} s")
 
     def _start_captures(self) -> list[Capture]:
         mode = self.sc.capture
@@ -210,8 +211,15 @@ class Run:
                     if kept.exists():
                         logs.mkdir(exist_ok=True)
                         shutil.copyfile(kept, logs / copy)
+        fetch = getattr(self.lab, "fetch_log", None)  # a lab across hosts: logs are there
         for name in self.sc.names:
             with contextlib.suppress(NetlabError, OSError):
+                if fetch is not None:
+                    text = fetch(name)
+                    if isinstance(text, str):
+                        logs.mkdir(exist_ok=True)
+                        (logs / f"{name}.log").write_text(text)
+                    continue
                 src = self.lab.robot(name).log
                 if src.exists():
                     logs.mkdir(exist_ok=True)
