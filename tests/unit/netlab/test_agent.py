@@ -56,8 +56,6 @@ class _Refusing:
 
 
 class _Lab:
-    robots: dict[str, object] = {}
-
     def client(self, robot: str) -> _Refusing:
         return _Refusing()
 
