@@ -8,7 +8,8 @@ is named with its type).  The agent holds one `Lab` with a `Span` (its robots, t
 hosts' robots as remote ones) and takes it down when told ``down``, when its stdin closes
 (the controller or the connection died) or on SIGTERM/SIGHUP.
 
-Operations: ``up`` (name, seed, fleet, workdir, span: vni, local, hosts, port; range: the
+Operations: ``hello`` (its netlab version, the address its ssh session came in on, its
+clock), ``up`` (name, seed, fleet, workdir, span: vni, local, hosts, port; range: the
 range model as `netlab.ranges.model_to_json` writes it, or radius: a unit disc's; runtime
 and image: the robots' kind, as `netlab.lab.Lab` takes them),
 ``add_robot`` (name, index, pos, mac, runtime: its MAC), ``add_remote`` (name, mac, pos),
@@ -29,6 +30,7 @@ import json
 import os
 import signal
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -58,7 +60,19 @@ class Agent:
             raise NetlabError("no lab here yet: `up` first")
         return self.lab
 
-    def up(self, name: str, seed: int, fleet: int, workdir: str, span: dict[str, Any],
+    def hello(self) -> dict[str, Any]:
+        from sdfr import __version__
+
+        # "client-address client-port server-address server-port": the controller reached
+        # this host at server-address, which the other hosts can reach it at as well.
+        conn = os.environ.get("SSH_CONNECTION", "").split()
+        return {
+            "version": __version__,
+            "address": conn[2] if len(conn) == 4 else None,
+            "time": time.time(),
+        }
+
+    def up(self, name: str, seed: int, fleet: int, workdir: str | None, span: dict[str, Any],
            radius: float | None = None, range: dict[str, Any] | None = None,
            runtime: str = "namespace", image: str | None = None) -> str:  # fmt: skip
         from netlab.lab import Lab
@@ -74,7 +88,8 @@ class Agent:
             model_from_json(range) if range is not None else UnitDisc(radius or 50.0)
         )
         kind: dict[str, Any] = {"runtime": runtime, **({"image": image} if image else {})}
-        lab = Lab(name, seed=seed, fleet=fleet, range_model=model, workdir=Path(workdir),
+        lab = Lab(name, seed=seed, fleet=fleet, range_model=model,
+                  workdir=Path(workdir) if workdir is not None else None,
                   span=plan, **kind)  # fmt: skip
         lab.up()
         self.lab = lab
@@ -184,9 +199,9 @@ class Agent:
             return {"ok": False, "error": f"{op}: bad request: {type(exc).__name__}: {exc}"}
 
 
-OPS = ("up", "add_robot", "add_remote", "robot", "start_all", "start", "restart", "stop", "kill",
-       "daemons_ended", *MEDIUM_OPS, "batch", "links", "positions", "read_log", "api",
-       "neighbors", "down")  # fmt: skip
+OPS = ("hello", "up", "add_robot", "add_remote", "robot", "start_all", "start", "restart",
+       "stop", "kill", "daemons_ended", *MEDIUM_OPS, "batch", "links", "positions", "read_log",
+       "api", "neighbors", "down")  # fmt: skip
 
 
 def serve(inp: TextIO, out: TextIO) -> None:

@@ -116,6 +116,21 @@ def _seconds(text: str) -> float:
     return value
 
 
+def _hosts_options(p: argparse.ArgumentParser, hosts_help: str) -> None:
+    p.add_argument("--hosts", metavar="H1,H2,...", help=hosts_help)
+    p.add_argument("--ssh-config", type=Path, help="ssh's configuration file (default: ssh's)")
+    p.add_argument(
+        "--host-python",
+        default="python3",
+        metavar="PATH",
+        help="the interpreter with netlab on the hosts (default: python3)",
+    )
+
+
+def _host_list(text: str | None) -> list[str]:
+    return [h.strip() for h in (text or "").split(",") if h.strip()]
+
+
 def _runtime_options(p: argparse.ArgumentParser, default: str | None) -> None:
     p.add_argument(
         "--runtime",
@@ -342,6 +357,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="report.json without its PNGs (faster; `netlab report RUN` draws them later)",
     )
     rn.add_argument("--lab", type=_lab_name, metavar="NAME", help="lab name (default: made unique)")
+    _hosts_options(
+        rn,
+        "run the lab across these hosts (ssh destinations: aliases or user@address), over "
+        "ssh, instead of the scenario's [hosts] or this machine; robots the scenario does "
+        "not place on one of them are spread over them (no captures are made)",
+    )
 
     cap = sub.add_parser("capture", help="capture a robot's (or the medium's) traffic to pcap")
     _name(cap, "a lab brought up with `netlab up`")
@@ -378,18 +399,10 @@ def build_parser() -> argparse.ArgumentParser:
         "what follows from what is missing. Exit status 1 when no lab can run here. With "
         "--hosts, check each host of a lab across machines over ssh instead.",
     )
-    doc.add_argument(
-        "--hosts",
-        metavar="H1,H2,...",
-        help="ssh destinations (aliases or user@address) to check: reachable, root, the same "
+    _hosts_options(
+        doc,
+        "ssh destinations (aliases or user@address) to check: reachable, root, the same "
         "netlab version, iproute2/nftables/tcpdump, VXLAN; and each one's clock offset",
-    )
-    doc.add_argument("--ssh-config", type=Path, help="ssh's configuration file (default: ssh's)")
-    doc.add_argument(
-        "--host-python",
-        default="python3",
-        metavar="PATH",
-        help="the interpreter with netlab on the hosts (default: python3)",
     )
     return p
 
@@ -423,8 +436,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     except scenario.ScenarioError as exc:
         print(f"netlab: {exc}", file=sys.stderr)
         return EXIT_BAD_SCENARIO
+    backend = None
+    if args.hosts or sc.hosts:
+        from netlab.spanlab import scenario_backend
+
+        backend = scenario_backend(
+            sc, hosts=_host_list(args.hosts), ssh_config=args.ssh_config, python=args.host_python
+        )
     result = scenario.run(
         sc,
+        backend=backend,
         lab_name=args.lab,
         runs=Path(args.runs),
         quick=args.quick,
@@ -539,8 +560,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     if args.hosts:
         from netlab.hosts import main_doctor
 
-        names = [h.strip() for h in args.hosts.split(",") if h.strip()]
-        return main_doctor(names, args.ssh_config, args.host_python)
+        return main_doctor(_host_list(args.hosts), args.ssh_config, args.host_python)
     caps = probe(docker=True)
     print(format_report(caps))
     return 0 if caps.lab else 1

@@ -14,6 +14,7 @@ cannot take part.
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import subprocess
 import sys
@@ -43,6 +44,10 @@ print(json.dumps(out))
 """
 
 
+#: An ssh destination: an alias, host, user@host or [v6 address]; never an option ("-o...").
+DESTINATION_RE = re.compile(r"[A-Za-z0-9_\[][\w.@:%\[\]-]{0,252}")
+
+
 class HostError(NetlabError):
     """A host that cannot be reached, or refuses what was asked."""
 
@@ -57,6 +62,13 @@ class Ssh:
     python: str = "python3"
     control_dir: Path = field(default_factory=lambda: Path(tempfile.gettempdir()))
     connect_timeout: int = 5
+
+    def __post_init__(self) -> None:
+        if not DESTINATION_RE.fullmatch(self.destination):
+            raise HostError(
+                f"{self.destination!r} is not an ssh destination (an alias of the ssh "
+                "configuration, or user@address)"
+            )
 
     def argv(self, argv: Sequence[str]) -> list[str]:
         """The ssh command line that runs `argv` on the host (quoted for its shell)."""

@@ -22,6 +22,7 @@ import contextlib
 import json
 import subprocess
 import threading
+import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from netlab.hosts import HostError, Ssh
 from netlab.observe import ClientLike
 from netlab.ranges import Links, Pos, RangeModel, UnitDisc, model_to_json
 from netlab.scenario.backend import Backend, LabLike, LabSpec
+from netlab.scenario.model import Scenario
 from netlab.vxlan import DEFAULT_PORT, vni_for
 from sdfr.errors import ApiError
 
@@ -159,18 +161,21 @@ class AgentClient:
 class SpanLab:
     """Robots spread over `hosts` (ssh destinations with their underlay addresses).
 
-    `robots` places robots on hosts by name; a robot added without a place goes to the host
-    with the fewest robots so far (the first such, in the order of `hosts`).
+    `robots` are added at `up`, each on its host; `place` says where robots added later go.
+    A robot neither names goes to the host with the fewest robots, counting those they will
+    get (the first such, in the order of `hosts`).
     """
 
     name: str
-    hosts: Sequence[tuple[Ssh, str]]  # (how to reach it, its underlay address)
+    #: (how to reach it, its underlay address: None for the one its ssh session came in on)
+    hosts: Sequence[tuple[Ssh, str | None]]
     robots: Mapping[str, str] = field(default_factory=dict)  # robot -> host destination
+    place: Mapping[str, str] = field(default_factory=dict)  # robot -> host destination
     seed: int = 7
     fleet: int = 3
     range_model: RangeModel = field(default_factory=lambda: UnitDisc(20.0))
     positions_at_start: Mapping[str, Pos] = field(default_factory=dict)
-    workdir: str = "/tmp"
+    workdir: str | None = None  # the shares' parent folder on each host (default: a new one)
     runtime: str = "namespace"
     image: str | None = None
     port: int = DEFAULT_PORT
@@ -179,6 +184,8 @@ class SpanLab:
     placed: dict[str, str] = field(default_factory=dict)  # robot -> host, as added
     index: dict[str, int] = field(default_factory=dict)
     macs: dict[str, str] = field(default_factory=dict)
+    #: host -> (its clock minus this one's, in s; the bound of that measure: half the round trip)
+    clocks: dict[str, tuple[float, float]] = field(default_factory=dict)
     _robots: dict[str, SpanRobot] = field(default_factory=dict)
     _pending: list[tuple[str | None, dict[str, Any]]] | None = None
 
@@ -195,7 +202,27 @@ class SpanLab:
 
     @property
     def where(self) -> str:
-        return f"on one medium across {len(self.hosts)} hosts"
+        """Where its robots are, and how far apart the hosts' clocks may be from this one's."""
+        apart = max((abs(off) + bound for off, bound in self.clocks.values()), default=0.0)
+        return (
+            f"on one medium across {len(self.hosts)} hosts (clocks within "
+            f"{apart * 1e3:.1f} ms of the controller's)"
+        )
+
+    @property
+    def hosts_meta(self) -> dict[str, dict[str, Any]]:
+        """For a run's report: each host's robots, and its clock's offset from this one's
+        with the bound of that measure (half the quickest round trip): a latency across two
+        hosts is known to within the sum of their offsets' bounds, once their offsets are
+        taken off."""
+        return {
+            ssh.destination: {
+                "robots": [r for r, h in self.placed.items() if h == ssh.destination],
+                "clock_offset_s": self.clocks.get(ssh.destination, (None, None))[0],
+                "clock_bound_s": self.clocks.get(ssh.destination, (None, None))[1],
+            }
+            for ssh, _ in self.hosts
+        }
 
     @property
     def medium(self) -> SpanMedium:
@@ -215,12 +242,20 @@ class SpanLab:
         self.down()
 
     def up(self) -> None:
-        """Every host's share up, joined by the span; then the robots of `robots`."""
+        """Every host's share up, joined by the span; then the robots of `robots`.
+
+        First each host is greeted: it must run this netlab version (HostError naming the
+        host and both versions otherwise, before anything is made), its underlay address is
+        the one given or the one its ssh session came in on, and its clock's offset from
+        this one is measured (`clocks`)."""
         naming.check_lab_name(self.name)
         dests = [ssh.destination for ssh, _ in self.hosts]
         if not dests:
             raise NetlabError(f"lab {self.name}: a lab across hosts needs at least one host")
-        unknown = sorted({h for h in self.robots.values() if h not in dests})
+        if len(set(dests)) != len(dests):
+            raise NetlabError(f"lab {self.name}: hosts repeat: {', '.join(dests)}")
+        unknown = sorted({h for h in [*self.robots.values(), *self.place.values()]
+                          if h not in dests})  # fmt: skip
         if unknown:
             raise NetlabError(f"lab {self.name}: robots on unknown hosts {', '.join(unknown)}")
         model = model_to_json(self.range_model)
@@ -229,25 +264,63 @@ class SpanLab:
                 f"lab {self.name}: a lab across hosts sends its range model to each host; "
                 f"{type(self.range_model).__name__} cannot be sent (a unit or lossy disc can)"
             )
-        addrs = [addr for _, addr in self.hosts]
+        addrs = [self._greet(ssh, addr) for ssh, addr in self.hosts]
         names = self.part_names()
         span = {"lab": self.name, "vni": vni_for(self.name), "hosts": addrs, "port": self.port}
-        for ssh, addr in self.hosts:
-            part = Part(ssh, self.env)
-            self.parts[ssh.destination] = part
-            workdir = f"{self.workdir}/{names[ssh.destination]}"
+        for (ssh, _), addr in zip(self.hosts, addrs, strict=True):
+            name = names[ssh.destination]
+            workdir = f"{self.workdir}/{name}" if self.workdir is not None else None
             here = {**span, "local": addr}
-            part.call("up", name=names[ssh.destination], seed=self.seed, fleet=self.fleet,
-                      range=model, workdir=workdir, span=here, runtime=self.runtime,
-                      image=self.image)  # fmt: skip
+            self.parts[ssh.destination].call(
+                "up", name=name, seed=self.seed, fleet=self.fleet, range=model, workdir=workdir,
+                span=here, runtime=self.runtime, image=self.image,
+            )  # fmt: skip
         for robot in self.robots:
             self.add_robot(robot, pos=self.positions_at_start.get(robot, (0.0, 0.0)))
 
+    def _greet(self, ssh: Ssh, given: str | None) -> str:
+        """Start the host's agent; its underlay address (see `up`)."""
+        from sdfr import __version__
+
+        dest = ssh.destination
+        part = self.parts[dest] = Part(ssh, self.env)
+        try:
+            hi = part.call("hello")  # (its time is late by the agent's start: not used)
+        except HostError as exc:
+            if "no operation 'hello'" in str(exc):
+                raise HostError(
+                    f"host {dest}: its netlab is older than {__version__} (no hello): run the "
+                    "same version on every host"
+                ) from None
+            raise
+        if hi["version"] != __version__:
+            raise HostError(
+                f"host {dest}: netlab {hi['version']} there, {__version__} here: run the same "
+                "version on every host"
+            )
+        # The clock: of three exchanges, the quickest bounds the offset best (NTP's way).
+        best = (0.0, float("inf"))
+        for _ in range(3):
+            t0 = time.time()
+            there = float(part.call("hello")["time"])
+            t1 = time.time()
+            if (t1 - t0) / 2 < best[1]:
+                best = (there - (t0 + t1) / 2, (t1 - t0) / 2)
+        self.clocks[dest] = best
+        address = given or hi.get("address")
+        if not address:
+            raise HostError(
+                f"host {dest}: no underlay address was given and its ssh session does not say "
+                "which address it came in on (no SSH_CONNECTION): give the host's address"
+            )
+        return str(address)
+
     def _place(self, name: str) -> str:
-        if name in self.robots:
-            return self.robots[name]
+        if name in self.robots or name in self.place:
+            return self.robots.get(name) or self.place[name]
         count = {ssh.destination: 0 for ssh, _ in self.hosts}
-        for host in self.placed.values():
+        planned = {**self.place, **self.robots}  # (those not added yet count where they go)
+        for host in {**planned, **self.placed}.values():
             count[host] += 1
         return min(count, key=lambda h: count[h])  # the first of the least loaded
 
@@ -414,10 +487,10 @@ class SpanLab:
 
 
 def span_backend(
-    hosts: Sequence[tuple[Ssh, str]],
+    hosts: Sequence[tuple[Ssh, str | None]],
     *,
     robots: Mapping[str, str] | None = None,
-    workdir: str = "/tmp",
+    workdir: str | None = None,
     env: Mapping[str, str] | None = None,
     port: int = DEFAULT_PORT,
 ) -> Backend:
@@ -441,7 +514,7 @@ def span_backend(
                 f"lab {spec.name}: a lab across hosts runs the wired medium with manual "
                 f"addressing; not {', '.join(refused)}"
             )
-        return SpanLab(spec.name, hosts, placed, seed=spec.seed, fleet=spec.fleet,
+        return SpanLab(spec.name, hosts, place=placed, seed=spec.seed, fleet=spec.fleet,
                        range_model=spec.range_model, workdir=workdir, runtime=spec.runtime,
                        image=spec.image if spec.runtime == "docker" else None,
                        port=port, env=dict(env or {}))  # fmt: skip
@@ -451,3 +524,22 @@ def span_backend(
         return lab.client(robot)
 
     return Backend(make_lab=make, connect=connect, can_capture=False)
+
+
+def scenario_backend(
+    sc: Scenario,
+    *,
+    hosts: Sequence[str] = (),
+    ssh_config: Path | None = None,
+    python: str = "python3",
+    env: Mapping[str, str] | None = None,
+) -> Backend:
+    """The backend for a run of `sc` across `hosts` (default: the hosts its [hosts] names),
+    reached by ssh with `ssh_config` and running netlab with `python` there; the robots `sc`
+    places on one of these hosts stay there, the others are spread."""
+    dests = list(hosts) or list(sc.hosts)
+    if not dests:
+        raise NetlabError(f"scenario {sc.name}: no hosts to run it across")
+    placement = {r: h for r, h in sc.placement().items() if h in dests}
+    sshs: list[tuple[Ssh, str | None]] = [(Ssh(d, ssh_config, python), None) for d in dests]
+    return span_backend(sshs, robots=placement, env=env)

@@ -435,6 +435,8 @@ class Run:
             "agreement_target": check.at_least if (check := self._agreement_check()) else None,
             "checks": [c.to_json() for c in self.checks],
             "steps": steps,
+            # A lab across hosts: each host's robots and clock offset (None on one host).
+            "hosts": getattr(self.lab, "hosts_meta", None),
         }
 
 
@@ -489,6 +491,10 @@ def run(
     the robot image of the docker runtime; without `plots` the report has no PNGs.  Skipped
     (status "skipped", with the reason said) when sdfrd lacks an option the scenario needs.
     """
+    if backend is None and scenario.hosts:
+        from netlab.spanlab import scenario_backend
+
+        backend = scenario_backend(scenario)
     backend = backend or Backend()
     if capture is not None:
         scenario = replace(scenario, capture=capture)

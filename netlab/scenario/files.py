@@ -29,6 +29,7 @@ from netlab.scenario.spec import (
     to_int,
     to_names,
     to_pair,
+    to_placed,
     to_robots,
     to_str,
     to_table,
@@ -41,9 +42,9 @@ from sdfr.errors import ConfigError
 from sdfr.hints import did_you_mean
 
 BUNDLED_DIR = Path(__file__).parent.parent / "scenarios"
-TOP_LEVEL = ("scenario", "groups", "positions", "kinds", "sdfrd", "step")
+TOP_LEVEL = ("scenario", "groups", "positions", "kinds", "hosts", "sdfrd", "step")
 #: Scenario fields written as tables of their own, not keys of [scenario].
-TABLES = ("groups", "positions", "kinds", "sdfrd")
+TABLES = ("groups", "positions", "kinds", "hosts", "sdfrd")
 
 #: How a field's value is read, by its declared type (``| None`` aside).
 BY_TYPE: dict[str, Conv] = {
@@ -248,7 +249,7 @@ def from_dict(
         hint = did_you_mean(extra[0], TOP_LEVEL)
         raise ScenarioError(
             f"{source}: unknown table or key {', '.join(map(repr, extra))}{hint} (a scenario file "
-            "has [scenario], [groups], [positions], [kinds], [sdfrd] and [[step]])"
+            "has [scenario], [groups], [positions], [kinds], [hosts], [sdfrd] and [[step]])"
         )
     f = _Fields(_table(data, "scenario", source), f"{source}: [scenario]")
     head = {"name": f.take("name", to_str, ... if name is None else name)}
@@ -262,6 +263,7 @@ def from_dict(
         groups=_entries(_table(data, "groups", source), to_names, f"{source}: [groups]"),
         positions=_entries(_table(data, "positions", source), to_pair, f"{source}: [positions]"),
         kinds=_entries(_table(data, "kinds", source), to_str, f"{source}: [kinds]"),
+        hosts=_entries(_table(data, "hosts", source), to_placed, f"{source}: [hosts]"),
         sdfrd=_table(data, "sdfrd", source),
         source=source,
         **head,

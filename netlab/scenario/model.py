@@ -10,6 +10,7 @@ from typing import Any
 
 from netlab import naming
 from netlab.errors import NetlabError
+from netlab.hosts import DESTINATION_RE
 from netlab.judging import fmt_set
 from netlab.mobility import HALL
 from netlab.ranges import Pos
@@ -87,6 +88,8 @@ class Scenario:
     "wired" (a bridge) or "radio" (802.11 radios, each robot's sdfrd joining the fleet's
     WiFi; the VM tier: `make test-radio`).  `air_medium`: a radio lab's medium, "netlab"
     (netlab's own: ranges, moves and partitions) or "hwsim" (the kernel's: all hear all).
+    `hosts`: a lab across machines (`netlab.spanlab`): each host (an ssh destination) with
+    the robots or groups it runs; the robots no host names are spread over the hosts.
     """
 
     name: str
@@ -110,6 +113,7 @@ class Scenario:
     kinds: Mapping[str, str] = field(default_factory=dict)
     medium: str = "wired"
     air_medium: str = "netlab"
+    hosts: Mapping[str, Sequence[str]] = field(default_factory=dict)
     #: Where it was read from, for messages.
     source: str | None = field(default=None, compare=False)
 
@@ -203,6 +207,7 @@ class Scenario:
                     raise Bad(f"groups: {group}: unknown robot {m!r}")
         check_field("sdfrd", lambda: check_options(self.sdfrd))
         selectors = self.selectors()
+        self._check_hosts(selectors)
         labels: set[str] = set()
         colliding: set[str] = set()
         for i, step in enumerate(self.steps, 1):
@@ -229,6 +234,32 @@ class Scenario:
                     colliding |= set(step.robots)
             except Bad as exc:
                 raise Bad(f"{where}: {exc}") from None
+
+    def _check_hosts(self, selectors: Selectors) -> None:
+        placed: dict[str, str] = {}
+        for host, sel in self.hosts.items():
+            if not isinstance(host, str) or not DESTINATION_RE.fullmatch(host):
+                raise Bad(
+                    f"hosts: {host!r} is not an ssh destination (an alias of the ssh "
+                    "configuration, or user@address)"
+                )
+            if isinstance(sel, str) or not isinstance(sel, Sequence):
+                raise Bad(f"hosts: {host}: expected a list of robots or groups, got {sel!r}")
+            if not sel:
+                continue  # it takes its share of the robots no host names
+            try:
+                robots = selectors.robots(tuple(sel))
+            except Bad as exc:
+                raise Bad(f"hosts: {host}: {exc}") from None
+            for robot in robots:
+                if robot in placed:
+                    raise Bad(f"hosts: {robot} is on {placed[robot]} and on {host}: one host each")
+                placed[robot] = host
+
+    def placement(self) -> dict[str, str]:
+        """The robots `hosts` places, and where (robot -> host)."""
+        selectors = self.selectors()
+        return {r: h for h, sel in self.hosts.items() if sel for r in selectors.robots(tuple(sel))}
 
     def initial_positions(self) -> dict[str, Pos]:
         names = self.names

@@ -339,6 +339,16 @@ def to_true(v: object) -> bool:
     return True
 
 
+def to_placed(v: object) -> tuple[str, ...]:
+    """A host's robots in [hosts]: a robot or group, or a list of them (empty: a share of the
+    robots no host names)."""
+    if isinstance(v, str):
+        return (v,)
+    if isinstance(v, list) and all(isinstance(x, str) for x in v):
+        return tuple(v)
+    raise Bad(f"expected a robot, a group or a list of them (or [] for a share), got {v!r}")
+
+
 def to_names(v: object) -> tuple[str, ...]:
     if not (isinstance(v, list) and all(isinstance(x, str) for x in v)):
         raise Bad(f"expected a list of robot names, got {v!r}")

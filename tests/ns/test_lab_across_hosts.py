@@ -10,6 +10,9 @@ on such a lab through the scenario engine, as it runs on one host."""
 from __future__ import annotations
 
 import dataclasses
+import json
+import re
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -24,6 +27,8 @@ from netlab.hostsim import SimHosts
 from netlab.scenario import engine, files
 from netlab.scenario.backend import LabLike, LabSpec
 from netlab.spanlab import SpanLab, span_backend
+from sdfr import __version__
+from tests.support.netlab_cli import netlab
 
 pytestmark = pytest.mark.root
 
@@ -138,15 +143,51 @@ def test_a_host_lost_before_down_is_named_and_the_others_are_cleaned_up(
     no_namespaces_of(lab)
 
 
-def test_a_bundled_scenario_runs_through_the_engine_on_three_hosts(
+def test_partition_merge_runs_with_netlab_run_across_the_hosts_its_file_names(
     sim: SimHosts, tmp_path: Path
 ) -> None:
-    """partition-merge as `netlab run` runs it, its robots spread over the hosts: the same
-    checks pass within the same deadlines; each robot's log is fetched from its host into the
-    run folder; the check that counts in captures says it was not judged (none are made)."""
+    """The bundled partition-merge with a [hosts] table (two robots placed, the rest spread),
+    run by `netlab run` over ssh: the same checks pass within the same deadlines as on one
+    host; each robot's log is fetched from its host into the run folder; the check that
+    counts in captures says it was not judged (none are made across hosts)."""
+    text = (files.BUNDLED_DIR / "partition-merge.toml").read_text()
+    placed = '\n[hosts]\nh1 = ["r1", "r6"]\nh2 = []\nh3 = []\n'
+    (tmp_path / "pm.toml").write_text(text.replace("\n[[step]]", placed + "\n[[step]]", 1))
+    run_dir = tmp_path / "runs"
+    done = netlab("run", str(tmp_path / "pm.toml"), "--runs", str(run_dir), "--no-plots",
+                  "--ssh-config", str(sim.ssh_config), "--host-python", sys.executable,
+                  timeout=300)  # fmt: skip
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out
+    assert "6 robots on one medium across 3 hosts (clocks within" in out
+    assert "partition-merge: PASSED, 4 of 5 checks ok" in out
+    assert "no services fetched again (no Update): needs captures (capture is 'none')" in out
+    [folder] = run_dir.iterdir()
+    meta = json.loads((folder / "report.json").read_text())["meta"]
+    judged = [c for c in meta["checks"] if c["kind"] != "updates"]
+    assert len(judged) == 4 and all(c["ok"] for c in judged), out
+    hosts = meta["hosts"]
+    assert sorted(hosts) == ["h1", "h2", "h3"] and hosts["h1"]["robots"] == ["r1", "r6"]
+    for h in hosts.values():  # one machine's clock: the offset is within its bound, < 50 ms
+        assert abs(h["clock_offset_s"]) <= h["clock_bound_s"] + 1e-3 < 0.05, hosts
+    where = {}  # each robot's host's share, from the first line of its log (its command)
+    for robot in [f"r{i}" for i in range(1, 7)]:
+        first = (folder / "logs" / f"{robot}.log").read_text().splitlines()[0]
+        assert f"--robot-id {robot} " in first, first
+        where[robot] = re.search(r"--state-dir \S*/netlab-(\w+?)-", first)
+    shares = {r: m.group(1) if m else None for r, m in where.items()}
+    assert shares["r1"] == shares["r6"] and shares["r1"] is not None, shares
+    others = [shares[r] for r in ("r2", "r3", "r4", "r5")]
+    assert shares["r1"] not in others and sorted(set(others)) == sorted(set(others) - {None})
+    assert len(set(others)) == 2 and others.count(others[0]) == 2, shares  # spread 2 and 2
+    print("\n" + out)
+
+
+def test_mobility_across_three_hosts_agrees_with_the_medium(sim: SimHosts, tmp_path: Path) -> None:
+    """Robots walking while their hosts' media follow every move: the bundled mobility
+    scenario's agreement checks hold across hosts as on one (its quick walk)."""
     made: list[SpanLab] = []
-    backend = span_backend(hosts_of(sim), workdir=str(tmp_path / "parts"),
-                           env={"PYTHONPATH": str(REPO)})  # fmt: skip
+    backend = span_backend(hosts_of(sim), env={"PYTHONPATH": str(REPO)})
 
     def make(spec: LabSpec) -> LabLike:
         lab = backend.make_lab(spec)
@@ -155,25 +196,46 @@ def test_a_bundled_scenario_runs_through_the_engine_on_three_hosts(
         return lab
 
     said: list[str] = []
-    sc = files.load(files.bundled()["partition-merge"])
+    sc = files.load(files.bundled()["mobility"])
     res = engine.run(sc, lab_name=naming.unique_lab_name("x"), run_dir=tmp_path / "run",
                      backend=dataclasses.replace(backend, make_lab=make), say=said.append,
-                     plots=False)  # fmt: skip
+                     quick=True, plots=False)  # fmt: skip
     log = "\n".join(said)
     assert res.status == "passed", log
     [lab] = made
-    spread = {h: sorted(r for r, p in lab.placed.items() if p == h) for h in ("h1", "h2", "h3")}
-    assert spread == {"h1": ["r1", "r4"], "h2": ["r2", "r5"], "h3": ["r3", "r6"]}
+    assert sorted(lab.placed.values()) == ["h1", "h1", "h2", "h2", "h3", "h3"]
     judged = [c for c in res.checks if c.kind != "updates"]
     assert judged and all(c.ok for c in judged), log
-    [updates] = [c for c in res.checks if c.kind == "updates"]
-    assert updates.ok is None and "not judged" in updates.detail
-    parts = lab.part_names()
-    for robot in sc.names:
-        kept = (tmp_path / "run" / "logs" / f"{robot}.log").read_text()
-        # Its daemon's own log, from its host's share of the lab.
-        ran = f"--robot-id {robot} --state-dir {tmp_path}/parts/{parts[lab.placed[robot]]}/"
-        assert ran in kept.splitlines()[0], f"{robot}'s log is not its host's: {kept[:300]!r}"
-        assert "INFO discovery layer started" in kept
     no_namespaces_of(lab)
     print("\n" + log)
+
+
+def test_a_host_with_another_netlab_version_is_named_before_anything_is_made(
+    sim: SimHosts, tmp_path: Path
+) -> None:
+    """h2 runs another release (a copy of this one with another version): `up` names the
+    host and both versions, and no host has made any of the lab."""
+    other = tmp_path / "other"
+    for package in ("sdfr", "netlab"):
+        shutil.copytree(REPO / package, other / package,
+                        ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    init = other / "sdfr" / "__init__.py"
+    init.write_text(re.sub(r'__version__ = "[^"]*"', '__version__ = "9.9.9"', init.read_text()))
+    hosts = hosts_of(sim)
+    hosts[1] = (dataclasses.replace(hosts[1][0], python=str(wrapper(tmp_path, other))), None)
+    lab = SpanLab(naming.unique_lab_name("x"), hosts, ROBOTS, env={"PYTHONPATH": str(REPO)})
+    with pytest.raises(HostError) as refused, lab:
+        pass
+    assert str(refused.value) == (
+        f"host h2: netlab 9.9.9 there, {__version__} here: run the same version on every host"
+    )
+    no_namespaces_of(lab)
+    assert not lab.placed
+
+
+def wrapper(tmp_path: Path, path: Path) -> Path:
+    """An interpreter that imports from `path` first (an agent's env would set it after)."""
+    exe = tmp_path / "python-other"
+    exe.write_text(f'#!/bin/sh\nexport PYTHONPATH={path}\nexec {sys.executable} "$@"\n')
+    exe.chmod(0o755)
+    return exe

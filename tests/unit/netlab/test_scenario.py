@@ -727,6 +727,33 @@ def test_kinds_give_robots_another_runtime_and_are_checked() -> None:
         loads('[scenario]\nrobots = 3\n[kinds]\nr1 = "vm"\n', "k", name="k")
 
 
+def test_hosts_place_robots_or_groups_once_each_and_the_rest_are_spread() -> None:
+    from netlab.spanlab import SpanLab, scenario_backend
+
+    text = (
+        '[scenario]\nrobots = 6\n[groups]\nleft = ["r1", "r2"]\n'
+        '[hosts]\nh1 = "left"\n"root@10.0.0.3" = ["r5"]\nh3 = []\n'
+    )
+    sc = loads(text, "h.toml", name="h")
+    assert sc.placement() == {"r1": "h1", "r2": "h1", "r5": "root@10.0.0.3"}
+    # --hosts naming other hosts: placements on hosts not named are dropped (spread instead).
+    spec = LabSpec("h", 0, 1, UnitDisc(10.0))
+    lab = scenario_backend(sc, hosts=["h1", "h9"]).make_lab(spec)
+    assert isinstance(lab, SpanLab)
+    assert [s.destination for s, _ in lab.hosts] == ["h1", "h9"]
+    assert dict(lab.place) == {"r1": "h1", "r2": "h1"}
+    for bad, said in (
+        ('h1 = ["r1"]\nh2 = "left"', "hosts: r1 is on h1 and on h2: one host each"),
+        ('"-oProxyCommand=x" = []', "hosts: '-oProxyCommand=x' is not an ssh destination"),
+        ('h1 = ["r9"]', "hosts: h1: unknown robot or group 'r9'"),
+        ("h1 = 3", r"\[hosts\]: h1: expected a robot, a group or a list of them"),
+    ):
+        with pytest.raises(ScenarioError, match=said):
+            loads(text.split("[hosts]")[0] + "[hosts]\n" + bad + "\n", "h.toml", name="h")
+    with pytest.raises(ScenarioError, match=r"unknown table or key 'host' \(did you mean 'hosts'"):
+        loads("[scenario]\nrobots = 2\n[host]\nh1 = []\n", "h.toml", name="h")
+
+
 def test_a_topology_file_lays_out_the_medium_only() -> None:
     from netlab.scenario import check_layout, lay_out
 
