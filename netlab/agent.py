@@ -19,13 +19,17 @@ timeout, options), ``start``, ``restart`` (robot, timeout, options), ``stop``, `
 ``merge``, ``set_pair_quality`` (a, b, loss, both), ``shape`` (robot, params) and ``batch``
 (ops: medium operations applied as one change), what it holds: ``links`` (the linked pairs
 whose receiver is here: each pair is judged on the receiving host), ``positions``,
-``read_log`` (robot: the tail of its daemon's log), a robot's daemon's API: ``api`` (robot,
-call, args; a refusal answers ``"api": {status, message, field}``) and ``neighbors``
-(robot: the robot ids its sdfrd lists), and ``down``.
+``read_log`` (robot: the tail of its daemon's log), tcpdumps: ``captures_start`` (targets:
+"medium", whose frames are kept only from this host's robots so that each frame is captured
+once across the hosts, or a robot: where each pcap is written) and ``captures_stop`` (their
+counters), ``read_file`` (path, offset, size: a pcap's bytes, base64), a robot's daemon's
+API: ``api`` (robot, call, args; a refusal answers ``"api": {status, message, field}``) and
+``neighbors`` (robot: the robot ids its sdfrd lists), and ``down``.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import signal
@@ -45,15 +49,19 @@ API_CALLS = ("neighbors", "history", "publish", "unpublish", "self_info")
 MEDIUM_OPS = ("move", "partition", "merge", "set_pair_quality", "shape")
 #: ``read_log`` sends at most the last this many bytes of a log.
 LOG_TAIL = 8 << 20
+#: ``read_file`` sends at most this many bytes an answer.
+FILE_CHUNK = 4 << 20
 
 
 class Agent:
     """The operations on this host's share of the lab (see the module doc)."""
 
     def __init__(self) -> None:
+        from netlab.capture import Capture
         from netlab.lab import Lab
 
         self.lab: Lab | None = None
+        self.captures: list[Capture] = []
 
     def _lab(self) -> Any:
         if self.lab is None:
@@ -169,6 +177,46 @@ class Agent:
         except FileNotFoundError:
             return None
 
+    def captures_start(self, targets: list[str]) -> dict[str, str]:
+        from netlab import naming
+        from netlab.capture import DEFAULT_BPF, Capture, start_all
+
+        lab = self._lab()
+        folder = Path(lab.workdir) / "captures"
+        folder.mkdir(parents=True, exist_ok=True)
+        caps = []
+        for target in targets:
+            path = folder / f"{target}.pcap"
+            if target == "medium":
+                mine = " or ".join(f"ether src {r.mac}" for r in lab.robots.values())
+                bpf = f"({DEFAULT_BPF}) and ({mine})" if mine else DEFAULT_BPF
+                caps.append(Capture(lab.medium.ns, naming.BRIDGE, path, label="medium", bpf=bpf))
+            else:
+                r = lab.robot(target)
+                caps.append(Capture(r.ns, r.iface, path, label=target))
+        start_all(caps)
+        self.captures += caps
+        return {c.label: str(c.path) for c in caps}
+
+    def captures_stop(self) -> dict[str, dict[str, int | None]]:
+        from netlab.capture import stop_all
+
+        caps, self.captures = self.captures, []
+        stats = stop_all(caps)
+        return {
+            c.label: {"captured": s.captured, "received": s.received, "dropped": s.dropped}
+            for c, s in zip(caps, stats, strict=False)
+        }
+
+    def read_file(self, path: str, offset: int, size: int) -> str:
+        lab = self._lab()
+        target = Path(path).resolve()
+        if not target.is_relative_to(Path(lab.workdir).resolve()):
+            raise NetlabError(f"read_file: {path} is not in this host's share of the lab")
+        with target.open("rb") as f:
+            f.seek(offset)
+            return base64.b64encode(f.read(min(size, FILE_CHUNK))).decode()
+
     def api(self, robot: str, call: str, args: dict[str, Any]) -> Any:
         if call not in API_CALLS:
             raise NetlabError(f"api: no call {call!r} (one of {', '.join(API_CALLS)})")
@@ -178,6 +226,9 @@ class Agent:
         return sorted(str(n["robot_id"]) for n in self._lab().client(robot).neighbors())
 
     def down(self) -> None:
+        caps, self.captures = self.captures, []
+        for cap in caps:
+            cap.kill()
         if self.lab is not None:
             lab, self.lab = self.lab, None
             lab.down()
@@ -201,7 +252,7 @@ class Agent:
 
 OPS = ("hello", "up", "add_robot", "add_remote", "robot", "start_all", "start", "restart",
        "stop", "kill", "daemons_ended", *MEDIUM_OPS, "batch", "links", "positions", "read_log",
-       "api", "neighbors", "down")  # fmt: skip
+       "captures_start", "captures_stop", "read_file", "api", "neighbors", "down")  # fmt: skip
 
 
 def serve(inp: TextIO, out: TextIO) -> None:

@@ -361,7 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
         rn,
         "run the lab across these hosts (ssh destinations: aliases or user@address), over "
         "ssh, instead of the scenario's [hosts] or this machine; robots the scenario does "
-        "not place on one of them are spread over them (no captures are made)",
+        "not place on one of them are spread over them",
     )
 
     cap = sub.add_parser("capture", help="capture a robot's (or the medium's) traffic to pcap")

@@ -198,6 +198,41 @@ def _frames(path: Path) -> Iterator[tuple[bytes, float, int]]:
             yield data, sec + frac / scale, wirelen
 
 
+def merge(sources: Iterable[tuple[Path, float]], out: Path) -> int:
+    """Write one classic pcap (microseconds) of the frames of every classic pcap in `sources`,
+    each with its clock's offset taken off its times (a host's clock minus the controller's),
+    in time order; how many frames.  The sources share one link type (PcapError if not)."""
+    frames: list[tuple[float, bytes, int]] = []
+    link: int | None = None
+    for path, offset in sources:
+        try:
+            head = path.read_bytes()[:24]
+        except OSError as exc:
+            raise PcapError(f"cannot read {path}: {exc}") from None
+        if len(head) < 24 or head[:4] not in _MAGIC:
+            raise PcapError(f"{path}: not a classic pcap")
+        kind = struct.unpack(_MAGIC[head[:4]][0] + "I", head[20:24])[0]
+        if link is not None and kind != link:
+            raise PcapError(f"{path}: link type {kind}, the others' {link}: cannot merge")
+        link = kind
+        frames.extend((t - offset, data, wirelen) for data, t, wirelen in _frames(path))
+    frames.sort(key=lambda f: f[0])
+    rec = struct.Struct("<IIII")
+    tmp = out.with_name(out.name + ".tmp")
+    with tmp.open("wb") as f:
+        f.write(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, SNAP_MAX, link or 1))
+        for t, data, wirelen in frames:
+            sec = int(t)
+            f.write(rec.pack(sec, min(round((t - sec) * 1e6), 999_999), len(data), wirelen))
+            f.write(data)
+    tmp.replace(out)
+    return len(frames)
+
+
+#: The snapshot length a merged pcap's header states (any frame captured here fits).
+SNAP_MAX = 262_144
+
+
 #: IP protocols read as "other" without scapy (TCP, IGMP); UDP is read on.
 _OTHER_PROTOCOLS = (6, 2)
 

@@ -18,8 +18,10 @@ ssh session ends (the controller died, or the connection dropped).
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import json
+import shutil
 import subprocess
 import threading
 import time
@@ -110,7 +112,7 @@ class SpanRobot:
 
 class SpanMedium:
     """The medium of a lab across hosts is one per host: there is no one namespace to
-    capture in (a scenario on such a lab runs with ``capture = "none"``)."""
+    capture in (`SpanLab.start_captures` captures on each)."""
 
     def __init__(self, lab: str) -> None:
         self.lab = lab
@@ -187,6 +189,7 @@ class SpanLab:
     #: host -> (its clock minus this one's, in s; the bound of that measure: half the round trip)
     clocks: dict[str, tuple[float, float]] = field(default_factory=dict)
     _robots: dict[str, SpanRobot] = field(default_factory=dict)
+    _captures: dict[str, dict[str, str]] = field(default_factory=dict)  # host -> label -> path
     _pending: list[tuple[str | None, dict[str, Any]]] | None = None
 
     def part_names(self) -> dict[str, str]:
@@ -395,6 +398,68 @@ class SpanLab:
         got = self.host_of(ref).call("read_log", robot=ref)
         return None if got is None else str(got)
 
+    # -- captures: tcpdumps on every host, fetched and put on this clock at the end ---------------
+
+    def start_captures(self, mode: str, names: Sequence[str]) -> int:
+        """tcpdump on every host: its medium ("all", "medium": only the frames its own robots
+        send, so that each frame is captured once) and its robots ("all", "robots"); how
+        many.  `stop_captures` fetches them."""
+        self._captures = {}
+        count = 0
+        for dest, part in self.parts.items():
+            targets = ["medium"] if mode in ("all", "medium") else []
+            if mode in ("all", "robots"):
+                targets += [n for n in names if self.placed.get(n) == dest]
+            if targets:
+                self._captures[dest] = dict(part.call("captures_start", targets=targets))
+                count += len(targets)
+        return count
+
+    def stop_captures(self, run_dir: Path) -> list[str]:
+        """Stop every host's tcpdumps and bring their pcaps into `run_dir`: each robot's as
+        ``<robot>.pcap``, the hosts' media merged into ``medium.pcap``, every time put on this
+        machine's clock (each host's measured offset taken off); what went wrong, said."""
+        from netlab import pcap
+        from netlab.capture import sidecar_path
+
+        said: list[str] = []
+        media: list[tuple[Path, float]] = []
+        fetched = run_dir / ".hosts"
+        for dest, paths in self._captures.items():
+            part = self.parts[dest]
+            try:
+                part.call("captures_stop")
+            except HostError as exc:
+                said.append(str(exc))
+            offset = self.clocks.get(dest, (0.0, 0.0))[0]
+            for label, path in paths.items():
+                local = fetched / dest / f"{label}.pcap"
+                try:
+                    self._fetch(part, path, local)
+                    self._fetch(part, str(sidecar_path(Path(path))), sidecar_path(local))
+                except HostError as exc:
+                    said.append(f"{label}'s capture on {dest}: {exc}")
+                    continue
+                if label == "medium":
+                    media.append((local, offset))
+                else:
+                    pcap.merge([(local, offset)], run_dir / f"{label}.pcap")
+                    sidecar_path(local).replace(sidecar_path(run_dir / f"{label}.pcap"))
+        if media:
+            pcap.merge(media, run_dir / "medium.pcap")
+            sidecar_path(media[0][0]).replace(sidecar_path(run_dir / "medium.pcap"))
+        self._captures = {}
+        shutil.rmtree(fetched, ignore_errors=True)
+        return said
+
+    @staticmethod
+    def _fetch(part: Part, path: str, into: Path) -> None:
+        into.parent.mkdir(parents=True, exist_ok=True)
+        with into.open("wb") as f:
+            while chunk := base64.b64decode(part.call("read_file", path=path, offset=f.tell(),
+                                                      size=4 << 20)):  # fmt: skip
+                f.write(chunk)
+
     # -- the medium: the same map on every host --------------------------------------------------
 
     def _medium(self, host: str | None, op: str, **kw: Any) -> None:
@@ -496,7 +561,7 @@ def span_backend(
 ) -> Backend:
     """The scenario engine's backend for runs on a lab across `hosts`: each run's lab is a
     `SpanLab` (robots placed by `robots`, else spread), its robots' APIs asked through their
-    hosts' agents.  Captures are not made (the medium has no one namespace to capture in)."""
+    hosts' agents, its captures made on every host (`SpanLab.start_captures`)."""
     hosts = list(hosts)
     placed = dict(robots or {})
 
@@ -523,7 +588,7 @@ def span_backend(
         assert isinstance(lab, SpanLab)
         return lab.client(robot)
 
-    return Backend(make_lab=make, connect=connect, can_capture=False)
+    return Backend(make_lab=make, connect=connect)
 
 
 def scenario_backend(

@@ -152,6 +152,14 @@ class Run:
         mode = self.sc.capture
         if mode == "none":
             return []
+        across = getattr(self.lab, "start_captures", None)
+        if across is not None:  # a lab across hosts: tcpdumps on each, fetched at the end
+            t = self.clock.monotonic()
+            n = across(mode, self.sc.names)
+            self.captured = True
+            took = self.clock.monotonic() - t
+            self.say(f"capturing on every host ({n} tcpdumps, {took:.2f} s)")
+            return []
         from netlab.capture import Capture, air_monitor, start_all
 
         caps: list[Capture] = []
@@ -188,6 +196,10 @@ class Run:
         if probe is not None:
             probe.close()
         try:
+            fetch = getattr(self.lab, "stop_captures", None)
+            if self.captured and fetch is not None:
+                for problem in fetch(self.run_dir):
+                    self.say(f"warning: {problem}")
             if captures:
                 from netlab.capture import CaptureError, stop_all
 

@@ -665,3 +665,32 @@ def test_every_time_plot_of_a_run_shares_its_axis_events_deadlines_and_title() -
     assert (tl.lag, tl.target) == (1.0, 0.9)
     bare = Timeline.of({}, t0, t0 + 5, "pcaps")
     assert bare.title == "run pcaps" and bare.target is None and bare.events == ()
+
+
+def _classic_pcap(path: Path, frames: list[tuple[float, bytes]], link: int = 1) -> None:
+    import struct
+
+    with path.open("wb") as f:
+        f.write(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, link))
+        for t, data in frames:
+            sec = int(t)
+            f.write(struct.pack("<IIII", sec, round((t - sec) * 1e6), len(data), len(data)))
+            f.write(data)
+
+
+def test_pcaps_of_hosts_merge_on_one_clock_in_time_order(tmp_path: Path) -> None:
+    """A lab across hosts merges its hosts' medium pcaps: each host's clock offset is taken
+    off its frames' times, and the frames come out in time order, bytes untouched."""
+    from netlab.pcap import PcapError, _frames, merge
+
+    a, b = tmp_path / "a.pcap", tmp_path / "b.pcap"
+    _classic_pcap(a, [(100.0, b"a1"), (102.0, b"a2")])
+    _classic_pcap(b, [(100.5, b"b1"), (101.2, b"b2")])  # b's clock is 0.4 s ahead
+    out = tmp_path / "medium.pcap"
+    assert merge([(a, 0.0), (b, 0.4)], out) == 4
+    got = [(data, round(t, 6)) for data, t, _ in _frames(out)]
+    assert got == [(b"a1", 100.0), (b"b1", 100.1), (b"b2", 100.8), (b"a2", 102.0)]
+    radio = tmp_path / "air.pcap"
+    _classic_pcap(radio, [(1.0, b"x")], link=127)
+    with pytest.raises(PcapError, match="link type 127, the others' 1: cannot merge"):
+        merge([(a, 0.0), (radio, 0.0)], out)
