@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # netlab/ may not exist yet in a fresh clone
 LINT_PATHS := $(wildcard sdfr netlab tests bench)
 
-.PHONY: venv test test-py310 test-netem test-radio check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper bench-footprint bench-scale netlab image compose-up compose-down clean distclean
+.PHONY: venv test test-py310 test-netem test-radio check fmt bench bench-events bench-auth bench-flood bench-traffic bench-paper bench-footprint bench-scale bench-scale-hosts netlab image compose-up compose-down clean distclean
 
 $(STAMP): pyproject.toml
 	bash scripts/bootstrap.sh
@@ -74,6 +74,13 @@ bench-footprint: $(STAMP)
 # grow with n (~12 min; root). runs/bench-scale.json and docs/scale-growth.png.
 bench-scale: $(STAMP)
 	$(call run-bench,scale > /dev/null)
+
+# scale-300 on a lab across 3 hosts simulated on this machine (namespaces with their own sshd,
+# driven over ssh), then the same scenario on one host, for comparison (~12 min; root).
+# runs/bench-scale-hosts.json and runs/bench-scale-300.json.
+bench-scale-hosts: $(STAMP)
+	$(call run-bench,scale --hosts 3 --robots 300 --out runs/bench-scale-hosts.json --plot runs/scale-hosts.png)
+	$(call run-bench,scale --scenario scale-300 --robots 300 --out runs/bench-scale-300.json --plot runs/scale-300.png)
 
 # What GET /events costs: the event log's append and size, change -> subscriber latency for
 # 1, 16 and 64 streams, the API layer's CPU (~30 s); JSON in runs/bench-events.json.

@@ -20,25 +20,35 @@ beacon); what must not grow with n is anything per robot per peer.
 
 JSON on stdout and in --out (runs/bench-scale.json), with the load average before and after
 each size; a plot in --plot (docs/scale-growth.png); a table on stderr. Needs root.
+
+With --hosts N (make bench-scale-hosts): the lab spread over N hosts simulated on this machine
+(`netlab.hostsim`: namespaces with their own sshd, driven over ssh like machines), running
+--scenario (scale-300: each robot hears ~16, not all); per size, also what the lab's VXLAN
+carried on the underlay over the stay (each host's counters, read with the resources check's
+readings) beside the frames the medium carried (the span's overhead).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import math
 import os
 import platform
 import statistics
+import sys
 import time
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from bench import compile_sdfr, err
 from netlab import pcap, scenario
+from netlab.vxlan import OVERHEAD
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -54,8 +64,12 @@ def step_window(report: dict[str, Any], label: str) -> tuple[float, float]:
     raise SystemExit(f"bench: the run's report has no step {label!r}")
 
 
-def air(run_dir: Path, start: float, end: float, n: int) -> dict[str, Any]:
-    """Bytes and datagrams on the air over [start, end], from the medium's capture."""
+def air(
+    run_dir: Path, start: float, end: float, n: int, reach: dict[str, set[str]] | None = None
+) -> dict[str, Any]:
+    """Bytes and datagrams on the air over [start, end], from the medium's capture; a
+    multicast reaches every other robot, or those in `reach` of its sender (robots that do
+    not move: the scenario's positions and radius)."""
     recs = [
         r
         for r in pcap.read_run([run_dir / "medium.pcap"])
@@ -74,7 +88,7 @@ def air(run_dir: Path, start: float, end: float, n: int) -> dict[str, Any]:
         kinds[r.type_key] += 1
         kind_bytes[r.type_key] += r.payload_len
         if r.multicast:
-            for robot in robots:
+            for robot in robots if reach is None else reach.get(sender, ()):
                 if robot != sender:
                     rx[robot] += r.payload_len
         elif r.dst in owner:
@@ -109,11 +123,14 @@ def spread(values: list[float]) -> dict[str, float]:
     }
 
 
-def run_size(n: int, base: scenario.Scenario, args: argparse.Namespace) -> dict[str, Any]:
-    sc = replace(base, robots=n, name=f"scale-{n}")
+def run_size(
+    n: int, base: scenario.Scenario, args: argparse.Namespace, backend: Any = None
+) -> dict[str, Any]:
+    sc = replace(base, robots=n, name=f"{base.name}-{n}" if n != base.robots else base.name)
     before = loadavg()
     t0 = time.monotonic()
-    res = scenario.run(sc, runs=args.runs, quick=args.quick, say=lambda s: err(f"  [{n}] {s}"))
+    res = scenario.run(sc, runs=args.runs, quick=args.quick, say=lambda s: err(f"  [{n}] {s}"),
+                       backend=backend)  # fmt: skip
     out: dict[str, Any] = {
         "robots": n,
         "status": res.status,
@@ -133,7 +150,7 @@ def run_size(n: int, base: scenario.Scenario, args: argparse.Namespace) -> dict[
     start, end = step_window(res.report, "start-up")
     out["setup_s"] = round(end - start, 2)
     for c in res.checks:
-        if c.kind == "lists" and c.took is not None and "converge" in c.description:
+        if c.kind in ("lists", "medium") and c.took is not None and "converge" in c.description:
             out["converge_s"] = round(c.took, 2)
         if c.kind == "agreement":
             out["agreement"] = c.data or c.detail
@@ -147,8 +164,65 @@ def run_size(n: int, base: scenario.Scenario, args: argparse.Namespace) -> dict[
             }
             out["rss_mib_per_daemon"] = {k: round(v, 2) for k, v in d["rss_mib"].items()}
     stay = step_window(res.report, "stay")
-    out["air"] = air(res.run_dir, stay[0], stay[1], n)
+    out["air"] = air(res.run_dir, stay[0], stay[1], n, in_reach(sc))
+    span = res.report["meta"].get("span_readings")
+    if span:
+        out["hosts"] = {h: len(v["robots"]) for h, v in res.report["meta"]["hosts"].items()}
+        out["span"] = span_cost(span, stay, res.run_dir)
     return out
+
+
+def in_reach(sc: scenario.Scenario) -> dict[str, set[str]] | None:
+    """Who hears whom, for a scenario whose robots stand still where it puts them (None when
+    every robot is in range of every other: the plain count is right)."""
+    from netlab.ranges import distance
+
+    pos = sc.initial_positions()
+    reach = {a: {b for b in pos if b != a and distance(pos[a], pos[b]) <= sc.radius} for a in pos}
+    return None if all(len(v) == len(pos) - 1 for v in reach.values()) else reach
+
+
+def span_cost(readings: list[dict[str, Any]], stay: tuple[float, float], run_dir: Path) -> Any:
+    """What the VXLAN carried on the underlay over the stay (the readings at its ends), beside
+    the frames the medium carried then (each once, from the merged medium capture)."""
+    first, last = readings[0], readings[-1]
+    seconds = last["time"] - first["time"]
+    tx = sum(last["hosts"][h]["tx_bytes"] - first["hosts"][h]["tx_bytes"] for h in last["hosts"])
+    pkts = sum(
+        last["hosts"][h]["tx_packets"] - first["hosts"][h]["tx_packets"] for h in last["hosts"]
+    )
+    frames = [r for r in pcap.read_run([run_dir / "medium.pcap"]) if stay[0] <= r.time <= stay[1]]
+    medium = sum(r.frame_len for r in frames) / (stay[1] - stay[0])
+    # The VXLAN device counts the frames it carried; each went out with VXLAN's 50 bytes
+    # (outer IPv4, UDP, VXLAN, Ethernet) once per other host it was sent to.
+    underlay = (tx + pkts * OVERHEAD) / seconds
+    return {
+        "window_s": round(seconds, 1),
+        "vxlan_frame_bytes_per_s": round(tx / seconds, 1),
+        "vxlan_frames_per_s": round(pkts / seconds, 1),
+        "underlay_bytes_per_s": round(underlay, 1),
+        "medium_frame_bytes_per_s": round(medium, 1),
+        "underlay_per_medium_byte": round(underlay / medium, 2) if medium else None,
+    }
+
+
+@contextlib.contextmanager
+def simulated_hosts(n: int, runs: Path, robots: int) -> Iterator[Any]:
+    """N hosts simulated on this machine, and the scenario backend for labs across them (of
+    `robots` at most: the machine's ARP table is raised for them)."""
+    from netlab import hostsim, naming
+    from netlab.hosts import Ssh
+    from netlab.spanlab import span_backend
+
+    missing = hostsim.needs()
+    if missing:
+        raise SystemExit(f"bench: simulated hosts need {missing} (scripts/bootstrap.sh)")
+    folder = runs / "bench-hosts"
+    folder.mkdir(parents=True, exist_ok=True)
+    with hostsim.SimHosts(naming.unique_lab_name("h"), n, folder, robots=robots) as sim:
+        hosts = [(Ssh(h.alias, sim.ssh_config, sys.executable, control_dir=sim.control_dir),
+                  h.address) for h in sim.hosts]  # fmt: skip
+        yield span_backend(hosts, env={"PYTHONPATH": str(ROOT)})
 
 
 def growth(sizes: list[dict[str, Any]], path: tuple[str, ...]) -> dict[str, Any]:
@@ -239,6 +313,15 @@ def table(res: dict[str, Any]) -> str:
             f"{a.get('tx_bytes_per_robot_per_s', {}).get('mean', float('nan')):>8.0f} "
             f"{a.get('rx_bytes_per_robot_per_s', {}).get('mean', float('nan')):>8.0f}"
         )
+    for s in res["sizes"]:
+        if "span" in s:
+            sp = s["span"]
+            lines.append(
+                f"{s['robots']} robots on hosts {s['hosts']}: the VXLAN put "
+                f"{sp['underlay_bytes_per_s']:.0f} B/s on the underlay for "
+                f"{sp['medium_frame_bytes_per_s']:.0f} B/s of frames on the medium "
+                f"({sp['underlay_per_medium_byte']} underlay bytes per medium byte)"
+            )
     for key, g in res["growth"].items():
         lines.append(f"growth of {key}: exponent {g['exponent']}")
     return "\n".join(lines)
@@ -251,18 +334,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs", type=Path, default=ROOT / "runs", help="where run folders go")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-scale.json")
     p.add_argument("--plot", type=Path, default=ROOT / "docs" / "scale-growth.png")
+    p.add_argument("--hosts", type=int, default=0, help="spread over N simulated hosts")
+    p.add_argument("--scenario", default=None, help="default scale-100 (scale-300 with --hosts)")
     args = p.parse_args(argv)
     if os.geteuid() != 0:
         err("bench: needs root (robots are network namespaces)")
         return 2
     bytecode = compile_sdfr()
-    base = scenario.load(scenario.find("scale-100"))
+    base = scenario.load(
+        scenario.find(args.scenario or ("scale-300" if args.hosts else "scale-100"))
+    )
     sizes = []
-    for n in (int(x) for x in args.robots.split(",")):
-        err(f"bench: {n} robots ...")
-        sizes.append(run_size(n, base, args))
+    with contextlib.ExitStack() as stack:
+        backend = None
+        counts = [int(x) for x in args.robots.split(",")]
+        if args.hosts:
+            backend = stack.enter_context(simulated_hosts(args.hosts, args.runs, max(counts)))
+        for n in counts:
+            err(f"bench: {n} robots ...")
+            sizes.append(run_size(n, base, args, backend))
     res: dict[str, Any] = {
         "bench": "scale",
+        "scenario": base.name,
+        "hosts": args.hosts or 1,
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         "bytecode": bytecode,
         "beacon_s": base.beacon,

@@ -22,7 +22,10 @@ whose receiver is here: each pair is judged on the receiving host), ``positions`
 ``read_log`` (robot: the tail of its daemon's log), tcpdumps: ``captures_start`` (targets:
 "medium", whose frames are kept only from this host's robots so that each frame is captured
 once across the hosts, or a robot: where each pcap is written) and ``captures_stop`` (their
-counters), ``read_file`` (path, offset, size: a pcap's bytes, base64), a robot's daemon's
+counters), ``read_file`` (path, offset, size: a pcap's bytes, base64), ``usage`` (robots:
+each running daemon's CPU and memory, as `netlab.procstat.Usage`, and the span's counters),
+``span_bytes`` (what its
+end of the VXLAN carried), a robot's daemon's
 API: ``api`` (robot, call, args; a refusal answers ``"api": {status, message, field}``) and
 ``neighbors`` (robot: the robot ids its sdfrd lists), and ``down``.
 """
@@ -33,6 +36,7 @@ import base64
 import json
 import os
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -208,6 +212,36 @@ class Agent:
             for c, s in zip(caps, stats, strict=False)
         }
 
+    def usage(self, robots: list[str]) -> dict[str, Any]:
+        from netlab import procstat
+
+        lab = self._lab()
+        kids = procstat.children()
+        out: dict[str, list[float]] = {}
+        for name in robots:
+            pid = lab.daemon_pid(name) if name in lab.robots else None
+            if pid is not None:
+                u = procstat.Usage.read(procstat.tree(pid, kids))
+                out[name] = [u.time, u.cpu_s, u.rss_kb, u.pss_kb, u.processes]
+        return {"robots": out, "span": self.span_bytes()}
+
+    def span_bytes(self) -> dict[str, int]:
+        """What this host's end of the VXLAN has carried (the underlay's share of the lab)."""
+        from netlab.vxlan import PORT_NAME
+
+        lab = self._lab()
+        got = subprocess.run(["ip", "-n", lab.medium.ns, "-j", "-s", "link", "show", PORT_NAME],
+                             capture_output=True, text=True, timeout=10, check=False)  # fmt: skip
+        if got.returncode != 0:
+            raise NetlabError(f"span_bytes: {got.stderr.strip() or 'ip failed'}")
+        stats = json.loads(got.stdout)[0]["stats64"]
+        return {
+            "tx_bytes": int(stats["tx"]["bytes"]),
+            "tx_packets": int(stats["tx"]["packets"]),
+            "rx_bytes": int(stats["rx"]["bytes"]),
+            "rx_packets": int(stats["rx"]["packets"]),
+        }
+
     def read_file(self, path: str, offset: int, size: int) -> str:
         lab = self._lab()
         target = Path(path).resolve()
@@ -252,7 +286,8 @@ class Agent:
 
 OPS = ("hello", "up", "add_robot", "add_remote", "robot", "start_all", "start", "restart",
        "stop", "kill", "daemons_ended", *MEDIUM_OPS, "batch", "links", "positions", "read_log",
-       "captures_start", "captures_stop", "read_file", "api", "neighbors", "down")  # fmt: skip
+       "captures_start", "captures_stop", "read_file", "usage", "span_bytes", "api", "neighbors",
+       "down")  # fmt: skip
 
 
 def serve(inp: TextIO, out: TextIO) -> None:

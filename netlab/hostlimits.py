@@ -96,6 +96,8 @@ def restore_if_last(neigh: Path = NEIGH_DIR) -> bool:
     state = _state_file()
     if manifest.names() or not state.exists():
         return False
+    if not neigh.exists():  # not the initial namespace: left to it (see `ensure`)
+        return False
     try:
         saved = json.loads(state.read_text())
         found, wanted = saved["found"], saved["set"]

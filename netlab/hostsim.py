@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
-from netlab import cleanup, kernel, naming
+from netlab import cleanup, hostlimits, kernel, naming
 from netlab.errors import NetlabError
 
 SSHD = "/usr/sbin/sshd"
@@ -102,8 +102,14 @@ class SimHosts:
         count: int,
         workdir: Path,
         subnet: ipaddress.IPv4Network | None = None,
+        robots: int = 0,
     ) -> None:
         self.name = naming.check_lab_name(name)
+        #: Robots the labs on these hosts will hold in all: the hosts share this machine's
+        #: one ARP table, whose limits their labs cannot raise from their own namespaces
+        #: (`netlab.hostlimits`), so `up` raises them for that many (and `down` restores
+        #: them once no lab is left).
+        self.robots = robots
         if not 1 <= count <= 200:
             raise NetlabError(f"simulated hosts: 1 to 200 hosts, got {count}")
         self.count = count
@@ -145,6 +151,8 @@ class SimHosts:
         if missing:
             raise NetlabError(f"cannot simulate hosts here: needs {', '.join(missing)}")
         self.workdir.mkdir(parents=True, exist_ok=True)
+        if self.robots:
+            hostlimits.ensure(hostlimits.mesh_entries(self.robots))
         self._keys()
         self._underlay()
         for host in self.hosts:
@@ -178,6 +186,8 @@ class SimHosts:
         subprocess.run(["ip", "link", "del", self.veth], capture_output=True, check=False)
         for ns in [h.ns for h in self.hosts] + [self.underlay_ns]:
             kernel.remove_ns(ns)
+        if self.robots:
+            hostlimits.restore_if_last()
 
     def kill_sshd(self, alias: str) -> None:
         """Kill one host's sshd (a host that died, as far as the controller can tell)."""

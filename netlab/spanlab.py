@@ -31,7 +31,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from netlab import naming
+from netlab import naming, procstat
 from netlab.errors import NetlabError
 from netlab.hosts import HostError, Ssh
 from netlab.observe import ClientLike
@@ -188,6 +188,8 @@ class SpanLab:
     macs: dict[str, str] = field(default_factory=dict)
     #: host -> (its clock minus this one's, in s; the bound of that measure: half the round trip)
     clocks: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: (when, each host's VXLAN counters): read with every `usage` reading.
+    span_readings: list[tuple[float, dict[str, dict[str, int]]]] = field(default_factory=list)
     _robots: dict[str, SpanRobot] = field(default_factory=dict)
     _captures: dict[str, dict[str, str]] = field(default_factory=dict)  # host -> label -> path
     _pending: list[tuple[str | None, dict[str, Any]]] | None = None
@@ -226,6 +228,12 @@ class SpanLab:
             }
             for ssh, _ in self.hosts
         }
+
+    @property
+    def span_meta(self) -> list[dict[str, Any]]:
+        """For a run's report: each host's VXLAN counters at each `usage` reading (what the
+        lab's frames cost the underlay over a resources check's window)."""
+        return [{"time": t, "hosts": hosts} for t, hosts in self.span_readings]
 
     @property
     def medium(self) -> SpanMedium:
@@ -392,6 +400,24 @@ class SpanLab:
             with contextlib.suppress(HostError):
                 ended.update(part.call("daemons_ended"))
         return ended
+
+    def usage(self, names: Iterable[str]) -> dict[str, procstat.Usage]:
+        """A /proc reading of each running daemon's process tree, on its host (a window's
+        two readings of a robot come from the same host's clock)."""
+        out: dict[str, procstat.Usage] = {}
+        span: dict[str, dict[str, int]] = {}
+        for dest, mine in self._mine(names).items():
+            got = self.parts[dest].call("usage", robots=mine)
+            span[dest] = got["span"]
+            for name, u in got["robots"].items():
+                out[name] = procstat.Usage(float(u[0]), float(u[1]), int(u[2]), int(u[3]),
+                                           int(u[4]))  # fmt: skip
+        self.span_readings.append((time.time(), span))
+        return out
+
+    def span_bytes(self) -> dict[str, dict[str, int]]:
+        """Each host's VXLAN counters: what the lab's frames cost the underlay, there."""
+        return {dest: dict(part.call("span_bytes")) for dest, part in self.parts.items()}
 
     def fetch_log(self, ref: str) -> str | None:
         """The robot's daemon's log (its last 8 MiB), read on its host; None if it has none."""

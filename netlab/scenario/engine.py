@@ -276,6 +276,9 @@ class Run:
     def _usage(self) -> dict[str, procstat.Usage]:
         """A /proc reading of each running daemon's process tree (empty when the lab cannot
         tell its daemons' pids)."""
+        across = getattr(self.lab, "usage", None)  # a lab across hosts reads on each host
+        if across is not None:
+            return dict(across(self.fleet.running))
         pid_of = getattr(self.lab, "daemon_pid", None)
         if pid_of is None:
             return {}
@@ -449,6 +452,7 @@ class Run:
             "steps": steps,
             # A lab across hosts: each host's robots and clock offset (None on one host).
             "hosts": getattr(self.lab, "hosts_meta", None),
+            "span_readings": getattr(self.lab, "span_meta", None),
         }
 
 

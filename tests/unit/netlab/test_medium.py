@@ -467,7 +467,22 @@ def test_a_topology_written_down_comes_back_with_the_same_links() -> None:
     assert Topology(Custom()).to_json() is None  # a model netlab cannot write down
 
 
-def test_arp_table_limits_out_of_sight_are_left_to_the_machine(tmp_path: Path) -> None:
+def test_arp_table_limits_out_of_sight_are_left_to_the_machine(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """In a namespace other than the initial one (a simulated host's ssh session) the
-    limits are not visible: a lab there leaves them to the machine's own labs."""
+    limits are not visible: a lab there leaves them to the machine (`SimHosts(robots=...)`
+    raises them from the initial namespace), and its going down neither restores them nor
+    forgets what the machine found (a 300-robot lab across simulated hosts once went deaf
+    past the default 1024 entries, and the record of the originals was lost)."""
+    monkeypatch.setenv("NETLAB_RUN_DIR", str(tmp_path / "run"))
+    neigh = tmp_path / "neigh"
+    neigh.mkdir()
+    (neigh / "gc_thresh2").write_text("512")
+    (neigh / "gc_thresh3").write_text("1024")
+    assert hostlimits.ensure(hostlimits.mesh_entries(300), neigh)  # the machine's side
     assert not hostlimits.ensure(hostlimits.mesh_entries(300), tmp_path / "absent")
+    assert not hostlimits.restore_if_last(tmp_path / "absent")  # a host's last lab went
+    assert (tmp_path / "run" / ".host.json").exists()
+    assert hostlimits.restore_if_last(neigh)  # the machine's side, once all are down
+    assert hostlimits.current(neigh) == {"gc_thresh2": 512, "gc_thresh3": 1024}
