@@ -18,7 +18,7 @@ venv:
 	bash scripts/bootstrap.sh
 
 test: $(STAMP)
-	$(BIN)/pytest -q tests/
+	$(BIN)/pytest -q --durations=30 tests/
 	$(MAKE) --no-print-directory test-py310
 	$(MAKE) --no-print-directory test-netem
 	$(MAKE) --no-print-directory test-radio
