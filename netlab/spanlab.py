@@ -26,6 +26,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -378,9 +379,28 @@ class SpanLab:
     def start_all(
         self, refs: Iterable[str] | None = None, *, timeout: float = 60.0, **options: Any
     ) -> None:
-        for dest, mine in self._mine(refs).items():
-            if mine:
-                self.parts[dest].call("start_all", robots=mine, timeout=timeout, options=options)
+        """Start the robots' daemons on every host at once; return when all are healthy
+        (HostError naming every host that failed, once all have answered)."""
+        work = {dest: mine for dest, mine in self._mine(refs).items() if mine}
+        with ThreadPoolExecutor(max_workers=max(1, len(work))) as pool:
+            futures = {
+                dest: pool.submit(
+                    self.parts[dest].call,
+                    "start_all",
+                    robots=mine,
+                    timeout=timeout,
+                    options=options,
+                )
+                for dest, mine in work.items()
+            }
+        failed = []
+        for future in futures.values():
+            try:
+                future.result()
+            except HostError as exc:
+                failed.append(str(exc))
+        if failed:
+            raise HostError("; ".join(failed))
 
     def start(self, ref: str, *, timeout: float = 30.0, **options: Any) -> None:
         self.host_of(ref).call("start", robot=ref, timeout=timeout, options=options)
