@@ -119,12 +119,8 @@ def _seconds(text: str) -> float:
 def _hosts_options(p: argparse.ArgumentParser, hosts_help: str) -> None:
     p.add_argument("--hosts", metavar="H1,H2,...", help=hosts_help)
     p.add_argument("--ssh-config", type=Path, help="ssh's configuration file (default: ssh's)")
-    p.add_argument(
-        "--host-python",
-        default="python3",
-        metavar="PATH",
-        help="the interpreter with netlab on the hosts (default: python3)",
-    )
+    p.add_argument("--host-python", default="python3", metavar="PATH",
+                   help="the interpreter with netlab on the hosts (default: python3)")  # fmt: skip
 
 
 def _host_list(text: str | None) -> list[str]:

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from netlab import agent
+from netlab.agentlink import AgentClient, Part
 from netlab.hosts import Ssh
-from netlab.spanlab import AgentClient, Part
 from sdfr.errors import ApiError
 
 
