@@ -24,10 +24,9 @@ whose receiver is here: each pair is judged on the receiving host), ``positions`
 once across the hosts, or a robot: where each pcap is written) and ``captures_stop`` (their
 counters), ``read_file`` (path, offset, size: a pcap's bytes, base64), ``usage`` (robots:
 each running daemon's CPU and memory, as `netlab.procstat.Usage`, and the span's counters),
-``span_bytes`` (what its
-end of the VXLAN carried), a robot's daemon's
-API: ``api`` (robot, call, args; a refusal answers ``"api": {status, message, field}``) and
-``neighbors`` (robot: the robot ids its sdfrd lists), and ``down``.
+``span_bytes`` (what its end of the VXLAN carried), a robot's daemon's API: ``api`` (robot,
+call, args; a refusal answers ``"api": {status, message, field}``) and ``neighbors`` (robot:
+the robot ids its sdfrd lists), and ``down``.
 """
 
 from __future__ import annotations
