@@ -99,6 +99,14 @@ class ServiceInput(msgspec.Struct, forbid_unknown_fields=True):
     attributes: Attributes | None = None
 
 
+# msgspec builds a Struct type's decoding information the first time the type is used, and
+# two threads using it for the first time at once can crash the process: a daemon died with
+# SIGSEGV inside `msgspec.convert(..., ServiceInput)` when its API layer's first publish and
+# its discovery layer's first decode of a peer's services came at the same moment. Build it
+# here, once, under the import lock (tests/unit/sdfr/test_records_threads.py).
+msgspec.json.Decoder(ServiceInput)
+
+
 class ServiceOutput(msgspec.Struct, forbid_unknown_fields=True):
     """A service as the API and peers show it."""
 
