@@ -175,10 +175,15 @@ def run_size(
 def in_reach(sc: scenario.Scenario) -> dict[str, set[str]] | None:
     """Who hears whom, for a scenario whose robots stand still where it puts them (None when
     every robot is in range of every other: the plain count is right)."""
-    from netlab.ranges import distance
+    from netlab.ranges import Topology, UnitDisc
 
+    medium = Topology(UnitDisc(sc.radius))  # the scenario's medium, as the lab builds it
     pos = sc.initial_positions()
-    reach = {a: {b for b in pos if b != a and distance(pos[a], pos[b]) <= sc.radius} for a in pos}
+    for robot, at in pos.items():
+        medium.add(robot, at)
+    reach: dict[str, set[str]] = {robot: set() for robot in pos}
+    for sender, receiver in medium.links():
+        reach[sender].add(receiver)
     return None if all(len(v) == len(pos) - 1 for v in reach.values()) else reach
 
 

@@ -30,6 +30,7 @@ from types import TracebackType
 from typing import Any
 
 from netlab import naming, procstat
+from netlab.agent import FILE_CHUNK
 from netlab.agentlink import AgentClient, Part
 from netlab.errors import NetlabError
 from netlab.hosts import HostError, Ssh
@@ -341,10 +342,6 @@ class SpanLab:
         self.span_readings.append((time.time(), span))
         return out
 
-    def span_bytes(self) -> dict[str, dict[str, int]]:
-        """Each host's VXLAN counters: what the lab's frames cost the underlay, there."""
-        return {dest: dict(part.call("span_bytes")) for dest, part in self.parts.items()}
-
     def fetch_log(self, ref: str) -> str | None:
         """The robot's daemon's log (its last 8 MiB), read on its host; None if it has none."""
         got = self.host_of(ref).call("read_log", robot=ref)
@@ -409,7 +406,7 @@ class SpanLab:
         into.parent.mkdir(parents=True, exist_ok=True)
         with into.open("wb") as f:
             while chunk := base64.b64decode(part.call("read_file", path=path, offset=f.tell(),
-                                                      size=4 << 20)):  # fmt: skip
+                                                      size=FILE_CHUNK)):  # fmt: skip
                 f.write(chunk)
 
     # -- the medium: the same map on every host --------------------------------------------------
