@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from netlab import cli
+from netlab.errors import NetlabError
 from netlab.judging import (
     PeerEntry,
     View,
@@ -742,6 +743,10 @@ def test_hosts_place_robots_or_groups_once_each_and_the_rest_are_spread() -> Non
     assert isinstance(lab, SpanLab)
     assert [s.destination for s, _ in lab.hosts] == ["h1", "h9"]
     assert dict(lab.place) == {"r1": "h1", "r2": "h1"}
+    # `netlab run --hosts` (and the doctor's) goes through the same check as [hosts]: ssh
+    # would read this one as an option.
+    with pytest.raises(NetlabError, match="'-oProxyCommand=x' is not an ssh destination"):
+        scenario_backend(sc, hosts=["h1", "-oProxyCommand=x"])
     for bad, said in (
         ('h1 = ["r1"]\nh2 = "left"', "hosts: r1 is on h1 and on h2: one host each"),
         ('"-oProxyCommand=x" = []', "hosts: '-oProxyCommand=x' is not an ssh destination"),
