@@ -17,8 +17,11 @@ $(STAMP): pyproject.toml
 venv:
 	bash scripts/bootstrap.sh
 
+# The unit tests (CPU-bound, no timing) on every core (pytest-xdist); then the tiers that
+# run fleets, one test at a time (their deadlines and figures assume the machine is theirs).
 test: $(STAMP)
-	$(BIN)/pytest -q --durations=30 tests/
+	$(BIN)/pytest -q -n auto --maxprocesses=4 --durations=10 tests/unit
+	$(BIN)/pytest -q --durations=30 tests/ --ignore=tests/unit
 	$(MAKE) --no-print-directory test-py310
 	$(MAKE) --no-print-directory test-netem
 	$(MAKE) --no-print-directory test-radio

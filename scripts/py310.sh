@@ -77,6 +77,7 @@ if [ ! -e "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
 fi
 
 # The unit tests, and fleets of real daemons (under 3.10: sdfrd runs as sys.executable).
-$V/bin/pytest -q -p no:cacheprovider tests/unit \
+$V/bin/pytest -q -p no:cacheprovider -n auto --maxprocesses=4 tests/unit
+$V/bin/pytest -q -p no:cacheprovider \
     "tests/ns/test_daemon.py::test_three_daemons_discover_publish_leave_die_and_restore" \
     tests/ns/test_changes.py tests/ns/test_supervision.py

@@ -179,7 +179,7 @@ trap 'echo "$me: terminated, stopping the VM" >&2; exit 143' TERM
     # Not the hypothesis, schemathesis and anyio plugins: these tests use none of them, and
     # importing them was most of pytest's start-up (natively 5.4 s with them, 1.1 s without;
     # under emulation that is minutes).
-    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest -p no:schemathesis -p no:anyio --basetemp=/run/sdfr-vm/pytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
+    printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest -p no:schemathesis -p no:anyio -p no:xdist --basetemp=/run/sdfr-vm/pytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
         "$(printf '%q ' "${pytest_args[@]}")"
     echo 'echo "${PIPESTATUS[0]}" >"$res/rc"'
     echo 'echo "vm: pytest done after $(cut -d" " -f1 /proc/uptime)s of uptime"'

@@ -151,7 +151,10 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
 @pytest.hookimpl(tryfirst=True)
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     deadline = time.monotonic() + 2.0
-    children = _children()
+    # Under pytest-xdist the controller runs no test: its children are the workers, which
+    # are still up here and check their own children.
+    distributing = session.config.pluginmanager.hasplugin("dsession")
+    children = {} if distributing else _children()
     while children and time.monotonic() < deadline:  # let exiting processes go
         time.sleep(0.05)
         children = _children()
@@ -179,8 +182,18 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     host = NETLAB_MANIFESTS / ".host.json"
     if host.exists() and not _baseline_host and not left:
         leaks.append(f"{host} left behind: the host's ARP limits were not put back")
+    if hasattr(session.config, "workerinput"):  # a pytest-xdist worker: tell the controller
+        session.config.workeroutput["sdfr_leaks"] = list(leaks)  # type: ignore[attr-defined]
     if leaks and session.exitstatus in (pytest.ExitCode.OK, pytest.ExitCode.NO_TESTS_COLLECTED):
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node: Any, error: object) -> None:
+    """A pytest-xdist worker is done: its leaks are the session's."""
+    worker = getattr(node, "gateway", None)
+    for line in getattr(node, "workeroutput", {}).get("sdfr_leaks", []):
+        _leaks.append(f"{getattr(worker, 'id', 'a worker')}: {line}")
 
 
 def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:

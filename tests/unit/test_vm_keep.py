@@ -27,9 +27,15 @@ def a_lab(base: Path) -> Path:
     (robot / "state" / "status.json").write_text('{"up": true}')
     (base / "netem-fleet0" / "r3.pcap").write_bytes(b"\xd4\xc3\xb2\xa1")
     os.symlink("sdfrd.log", robot / "latest.log")
+    # (Bound through the folder's descriptor: a worker's tmp_path can be longer than
+    # AF_UNIX's 107 bytes.)
+    folder = os.open(robot / "state", os.O_PATH | os.O_DIRECTORY)
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(str(robot / "state" / "api.sock"))
-    listener.close()
+    try:
+        listener.bind(f"/proc/self/fd/{folder}/api.sock")
+    finally:
+        listener.close()
+        os.close(folder)
     os.mkfifo(robot / "state" / "pipe")
     return robot
 
