@@ -26,7 +26,7 @@ counters), ``read_file`` (path, offset, size: a pcap's bytes, base64), ``usage``
 each running daemon's CPU and memory, as `netlab.procstat.Usage`, and the span's counters),
 ``span_bytes`` (what its end of the VXLAN carried), a robot's daemon's API: ``api`` (robot,
 call, args; a refusal answers ``"api": {status, message, field}``) and ``neighbors`` (robot:
-the robot ids its sdfrd lists), and ``down``.
+the robot ids its sdfrd lists), and ``down`` (keep_workdir: the folder it kept).
 """
 
 from __future__ import annotations
@@ -258,13 +258,16 @@ class Agent:
     def neighbors(self, robot: str) -> list[str]:
         return sorted(str(n["robot_id"]) for n in self._lab().client(robot).neighbors())
 
-    def down(self) -> None:
+    def down(self, keep_workdir: bool = False) -> str | None:
+        """The share down; the folder kept (`keep_workdir`: daemon logs and state), if any."""
         caps, self.captures = self.captures, []
         for cap in caps:
             cap.kill()
         if self.lab is not None:
             lab, self.lab = self.lab, None
-            lab.down()
+            kept = lab.down(keep_workdir=keep_workdir).kept
+            return str(kept) if kept else None
+        return None
 
     def handle(self, request: dict[str, Any]) -> dict[str, Any]:
         request = dict(request)

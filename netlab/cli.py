@@ -52,6 +52,7 @@ from netlab.labcli import (
     cmd_shape,
     cmd_status,
     cmd_up,
+    host_list,
     lab_record,
 )
 from netlab.robots import AIRS, RUNTIMES
@@ -121,10 +122,6 @@ def _hosts_options(p: argparse.ArgumentParser, hosts_help: str) -> None:
     p.add_argument("--ssh-config", type=Path, help="ssh's configuration file (default: ssh's)")
     p.add_argument("--host-python", default="python3", metavar="PATH",
                    help="the interpreter with netlab on the hosts (default: python3)")  # fmt: skip
-
-
-def _host_list(text: str | None) -> list[str]:
-    return [h.strip() for h in (text or "").split(",") if h.strip()]
 
 
 def _runtime_options(p: argparse.ArgumentParser, default: str | None) -> None:
@@ -204,6 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="sdfrd's beacon interval with --start (default: the topology file's, else sdfrd's)",
     )
+    _hosts_options(up, "spread the lab over these hosts (ssh destinations) instead of the "
+                   "topology's [hosts] or this machine (docs/hosts.md)")  # fmt: skip
 
     down = sub.add_parser(
         "down",
@@ -437,7 +436,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from netlab.spanlab import scenario_backend
 
         backend = scenario_backend(
-            sc, hosts=_host_list(args.hosts), ssh_config=args.ssh_config, python=args.host_python
+            sc, hosts=host_list(args.hosts), ssh_config=args.ssh_config, python=args.host_python
         )
     result = scenario.run(
         sc,
@@ -470,7 +469,8 @@ def _span(least: float, most: float) -> str:
 def cmd_capture(args: argparse.Namespace) -> int:
     from netlab.capture import Capture
 
-    record = lab_record(args.name)
+    robot = None if args.target == "medium" else args.target
+    record = lab_record(args.name, robot, "capture")
     if args.target == "medium":
         ns, iface = naming.air_ns(args.name), naming.BRIDGE
     else:
@@ -556,7 +556,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     if args.hosts:
         from netlab.hosts import main_doctor
 
-        return main_doctor(_host_list(args.hosts), args.ssh_config, args.host_python)
+        return main_doctor(host_list(args.hosts), args.ssh_config, args.host_python)
     caps = probe(docker=True)
     print(format_report(caps))
     return 0 if caps.lab else 1

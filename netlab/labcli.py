@@ -17,7 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from netlab import cleanup, docker, kernel, manifest, naming, pingall
+from netlab import cleanup, docker, kernel, manifest, naming, pingall, spankeep
 from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError
 from netlab.lab import Lab
 from netlab.manifest import Manifest, RobotRecord
@@ -52,6 +52,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     from netlab import scenario
 
     sc = _topology(args)
+    hosts = host_list(getattr(args, "hosts", None)) or list(sc.hosts)
+    if hosts:  # a lab across hosts: held by a keeper (netlab.spankeep)
+        return spankeep.up(args, hosts)
     lab = Lab(
         args.name,
         seed=sc.seed,
@@ -117,7 +120,21 @@ def _links_summary(lab: Lab) -> str:
     return f"{len(pairs)} linked pairs of {len(lab.robots)} robots"
 
 
+def host_list(text: str | None) -> list[str]:
+    """`--hosts`' ssh destinations."""
+    return [h.strip() for h in (text or "").split(",") if h.strip()]
+
+
+def _across(name: str, op: str, **kw: Any) -> dict[str, Any] | None:
+    """The keeper's answer when `name` is a lab across hosts (None: it is not)."""
+    return spankeep.call(name, op, **kw) if spankeep.load(name) is not None else None
+
+
 def cmd_partition(args: argparse.Namespace) -> int:
+    if (span := _across(args.name, "partition", groups=args.groups)) is not None:
+        print(f"lab {args.name}: partition {' | '.join(','.join(g) for g in args.groups)}; "
+              f"{span['linked_pairs']} linked pairs across its hosts")  # fmt: skip
+        return 0
     with _attached(args.name) as lab:
         try:
             lab.partition(args.groups)
@@ -130,6 +147,9 @@ def cmd_partition(args: argparse.Namespace) -> int:
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
+    if (span := _across(args.name, "merge")) is not None:
+        print(f"lab {args.name}: merged; {span['linked_pairs']} linked pairs across its hosts")
+        return 0
     with _attached(args.name) as lab:
         lab.merge()
         print(f"lab {args.name}: merged; {_links_summary(lab)}")
@@ -143,6 +163,10 @@ def cmd_shape(args: argparse.Namespace) -> int:
     params = {k: getattr(args, k) for k in SHAPE_PARAMS if getattr(args, k) is not None}
     if args.clear == bool(params):
         raise NetlabError("shape: give shaping parameters (--loss, --delay, ...) or --clear")
+    if (span := _across(args.name, "shape", robots=args.robots, params=params)) is not None:
+        for robot, what in span["shaped"].items():
+            print(f"lab {args.name}: {robot}: {what}")
+        return 0
     with _attached(args.name) as lab:
         for robot in args.robots:
             lab.robot(robot)  # all known before any is shaped
@@ -154,6 +178,13 @@ def cmd_shape(args: argparse.Namespace) -> int:
 
 
 def cmd_down(args: argparse.Namespace) -> int:
+    span = spankeep.load(args.name)
+    if span is not None:
+        lines = spankeep.down(args.name, span, keep_workdir=not args.cleanup)
+        print(f"lab {args.name} removed from {len(span.hosts)} hosts")
+        for line in lines:
+            print(f"  {line}")
+        return 0
     try:
         record = manifest.load(args.name)
     except NetlabError as exc:  # a damaged manifest: swept by the lab's name alone
@@ -185,10 +216,14 @@ def cmd_down(args: argparse.Namespace) -> int:
 
 def cmd_status(args: argparse.Namespace) -> int:
     names = [args.name] if args.name else manifest.names()
+    spans = [n for n in ([args.name] if args.name else spankeep.names()) if spankeep.load(n)]
+    across = {n: spankeep.call(n, "status") for n in spans}
     labs = []
     for name in names:
         record = manifest.load(name)
         if record is None:
+            if name in across:
+                continue
             if args.name:
                 left = kernel.list_ns(naming.prefix(name))
                 hint = f" (but namespaces {', '.join(left)}: `netlab down {name}`)" if left else ""
@@ -198,14 +233,24 @@ def cmd_status(args: argparse.Namespace) -> int:
         labs.append(lab_status(record))
     stray = {k: v for k, v in orphans().items() if not args.name or k == args.name}
     if args.json:
-        print(json.dumps({"labs": labs, "orphans": stray}, indent=1))
-    else:
+        print(json.dumps({"labs": labs, "across_hosts": across, "orphans": stray}, indent=1))
+        return 0
+    if labs or stray or not across:
         print(format_status(labs, stray))
+    for name, span in across.items():
+        print(f"lab {name}: {span['robots']} robots {span['where']}, keeper pid {span['pid']}; "
+              f"{span['linked_pairs']} linked pairs")  # fmt: skip
+        for host, h in span["hosts"].items():
+            print(f"  host {host}: share {h['share']} ({h['session']}): {', '.join(h['robots'])}")
+        for robot, why in span["daemons_ended"].items():
+            print(f"  {robot}: sdfrd ended: {why}")
     return 0
 
 
-def lab_record(name: str) -> Manifest:
+def lab_record(name: str, robot: str | None = None, what: str = "exec") -> Manifest:
     record = manifest.load(name)
+    if record is None and spankeep.load(name) is not None:
+        raise spankeep.elsewhere(name, robot, what)
     if record is None:
         hint = did_you_mean(name, manifest.names())
         raise LabNotFoundError(f"no lab {name} is up{hint} (`netlab status` lists labs)")
@@ -253,7 +298,7 @@ def _exec_argv(robot: RobotRecord, cmd: list[str], *, interactive: bool) -> list
 
 def cmd_exec(args: argparse.Namespace) -> int:
     robot_name, cmd = split_exec(list(args.cmd), args.all)
-    record = lab_record(args.name)
+    record = lab_record(args.name, robot_name)
     if robot_name is not None:
         robot = robot_record(record, robot_name)
         argv = _exec_argv(robot, cmd, interactive=sys.stdin.isatty())
@@ -315,7 +360,7 @@ def log_of(ref: str, robot: str) -> Path:
             raise NetlabError(f"no folder {ref} (give a lab's name, or the folder down kept)")
     else:
         try:
-            record = lab_record(naming.check_lab_name(ref))
+            record = lab_record(naming.check_lab_name(ref), robot, "logs")
         except LabNotFoundError as exc:
             raise LabNotFoundError(f"{exc}; after `netlab down`, give the folder it kept") from None
         robot_record(record, robot)
@@ -353,7 +398,7 @@ def cmd_logs(args: argparse.Namespace) -> int:
 
 
 def cmd_pingall(args: argparse.Namespace) -> int:
-    record = lab_record(args.name)
+    record = lab_record(args.name, what="pingall")
     addresses = {  # the addresses in effect (sdfrd's own, with auto addressing)
         name: (kernel.addresses(r.ns, r.iface, f"reading {name}'s address") or [""])[0]
         for name, r in record.robots.items()

@@ -482,14 +482,17 @@ class SpanLab:
     def neighbors(self, robot: str) -> set[str]:
         return set(self.host_of(robot).call("neighbors", robot=robot))
 
-    def down(self) -> None:
-        """Every host's share down; HostError naming the hosts that could not be reached."""
+    def down(self, keep_workdir: bool = False) -> dict[str, str]:
+        """Every host's share down; the folders kept on each host (`keep_workdir`), or
+        HostError naming the hosts that could not be reached."""
         failed = []
+        kept: dict[str, str] = {}
         for dest, part in self.parts.items():
             try:
                 if part.proc.poll() is not None:
                     raise HostError(f"host {dest}: down: {part._ended()}")
-                part.call("down")
+                if folder := part.call("down", keep_workdir=keep_workdir):
+                    kept[dest] = str(folder)
             except HostError as exc:
                 failed.append(str(exc))
             finally:
@@ -498,6 +501,7 @@ class SpanLab:
         self.parts.clear()
         if failed:
             raise HostError("; ".join(failed))
+        return kept
 
 
 def span_backend(

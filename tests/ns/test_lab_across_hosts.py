@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from netlab import cleanup, hostsim, kernel, manifest, naming
+from netlab import cleanup, hostsim, kernel, manifest, naming, spankeep
 from netlab.errors import NetlabError
 from netlab.hosts import HostError, Ssh
 from netlab.hostsim import SimHosts
@@ -257,3 +259,95 @@ def assert_one_medium_of_every_frame(folder: Path) -> None:
     # A frame sent in the last instant before the captures stopped may be in one, not the other.
     assert all(abs(seen[r] - sent[r]) <= 2 for r in sent), (seen, sent)
     assert all(n > 10 for n in sent.values()), sent
+
+
+def shares_left(shares: list[str]) -> list[str]:
+    return [ns for ns in kernel.list_ns() if any(ns.startswith(naming.prefix(s)) for s in shares)]
+
+
+def test_up_status_partition_shape_merge_down_across_hosts_from_the_command_line(
+    sim: SimHosts,
+) -> None:
+    """`netlab up --hosts` leaves a keeper holding the lab; status, partition, shape and merge
+    go through it; exec names the robot's host; down takes every host's share down."""
+    name = naming.unique_lab_name("u")
+    ssh = ["--ssh-config", str(sim.ssh_config), "--host-python", sys.executable]
+    up = netlab("up", name, "--robots", "6", "--spacing", "2", "--hosts", "h1,h2,h3", *ssh,
+                "--start", "--beacon-interval", "1", timeout=300)  # fmt: skip
+    try:
+        out = up.stdout + up.stderr
+        assert up.returncode == 0, out
+        assert "6 robots on one medium across 3 hosts" in out, out
+        assert "sdfrd runs on all 6 robots, healthy in" in out, out
+        record = spankeep.load(name)
+        assert record is not None and record.keeper_alive()
+        assert record.robots == {"r1": "h1", "r2": "h2", "r3": "h3",
+                                 "r4": "h1", "r5": "h2", "r6": "h3"}  # fmt: skip
+        status = netlab("status", name, "--json")
+        assert status.returncode == 0, status.stderr
+        span = json.loads(status.stdout)["across_hosts"][name]
+        assert span["linked_pairs"] == 15 and span["robots"] == 6, span
+        assert all(h["session"] == "up" and len(h["robots"]) == 2 for h in span["hosts"].values())
+        text = netlab("status").stdout
+        assert f"lab {name}: 6 robots on one medium across 3 hosts" in text, text
+        assert f"host h2: share {record.shares['h2']} (up): r2, r5" in text, text
+
+        assert span["daemons_ended"] == {}, span  # (healthy at start: up said so)
+
+        wrong = netlab("exec", name, "r3", "--", "true")
+        assert wrong.returncode == 1
+        assert f"r3 is on h3, in its share {record.shares['h3']} there" in wrong.stderr
+
+        part = netlab("partition", name, "r1,r2", "r3,r4,r5,r6")
+        assert part.returncode == 0, part.stderr
+        assert "7 linked pairs across its hosts" in part.stdout, part.stdout  # 1 + 6
+        bad = netlab("partition", name, "r1,r9")
+        assert bad.returncode == 1 and "no robot 'r9'" in bad.stderr, bad.stderr
+        shaped = netlab("shape", name, "r4", "--rate", "1mbit")
+        assert shaped.returncode == 0 and "r4:" in shaped.stdout, shaped.stderr
+        merged = netlab("merge", name)
+        assert "merged; 15 linked pairs" in merged.stdout, merged.stdout + merged.stderr
+    finally:
+        down = netlab("down", name, timeout=120)
+    assert down.returncode == 0, down.stdout + down.stderr
+    assert f"lab {name} removed from 3 hosts" in down.stdout
+    kept = re.findall(r"share \w+ down, kept its folder (\S+)", down.stdout)
+    assert len(kept) == 3, down.stdout  # (as on one host: the daemon logs stay)
+    for folder in kept:
+        assert list(Path(folder).glob("r*/sdfrd.log")), folder
+        shutil.rmtree(folder)
+    assert spankeep.load(name) is None and not spankeep.log_path(name).exists()
+    assert not shares_left(list(record.shares.values()))
+    assert not record.keeper_alive()
+
+
+def test_a_lab_whose_keeper_was_killed_is_gone_from_every_host_and_down_says_so(
+    sim: SimHosts,
+) -> None:
+    """Kill -9 the keeper: the hosts take their shares down as its sessions end; status says
+    the keeper is gone; down asks each host and removes the record."""
+    name = naming.unique_lab_name("k")
+    ssh = ["--ssh-config", str(sim.ssh_config), "--host-python", sys.executable]
+    up = netlab("up", name, "--robots", "3", "--hosts", "h1,h2", *ssh, timeout=300)
+    assert up.returncode == 0, up.stdout + up.stderr
+    assert "sdfrd runs on no robot" in up.stdout
+    record = spankeep.load(name)
+    assert record is not None
+    shares = list(record.shares.values())
+    assert len(shares_left(shares)) >= 3  # each robot's namespace, at least
+    os.kill(record.pid, signal.SIGKILL)
+    until("every host took its share down", lambda: not shares_left(shares), 30.0)
+    status = netlab("status", name)
+    assert status.returncode == 1 and "its keeper (pid" in status.stderr, status.stderr
+    down = netlab("down", name)
+    assert down.returncode == 0, down.stdout + down.stderr
+    assert "was gone: asking each host" in down.stdout
+    assert spankeep.load(name) is None and not spankeep.log_path(name).exists()
+
+    # A host that cannot be reached: up says which, and nothing is left anywhere.
+    failed = netlab("up", name, "--robots", "2", "--hosts", "h1,nosuch.invalid", *ssh)
+    assert failed.returncode == 1, failed.stdout + failed.stderr
+    assert "host nosuch.invalid: hello: cannot be reached over ssh" in failed.stderr
+    assert spankeep.load(name) is None and not spankeep.socket_path(name).exists()
+    assert not shares_left([f"{name[:7]}{i}" for i in range(2)])
+    assert not spankeep.log_path(name).exists()  # (its error said it all)
