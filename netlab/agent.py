@@ -13,12 +13,14 @@ clock), ``up`` (name, seed, fleet, workdir, span: vni, local, hosts, port; range
 range model as `netlab.ranges.model_to_json` writes it, or radius: a unit disc's; runtime
 and image: the robots' kind, as `netlab.lab.Lab` takes them),
 ``add_robot`` (name, index, pos, mac, runtime: its MAC), ``add_remote`` (name, mac, pos),
+``add_robots`` and ``add_remotes`` (robots, remotes: lists of those, the medium loaded once),
 ``robot`` (robot: its ns, mac, iface and log here), the daemons' ``start_all`` (robots,
-timeout, options), ``start``, ``restart`` (robot, timeout, options), ``stop``, ``kill``
-(robot) and ``daemons_ended``, the medium's ``move`` (robot, pos), ``partition`` (groups),
-``merge``, ``set_pair_quality`` (a, b, loss, both), ``shape`` (robot, params) and ``batch``
-(ops: medium operations applied as one change), what it holds: ``links`` (the linked pairs
-whose receiver is here: each pair is judged on the receiving host), ``positions``,
+timeout, options), ``start``, ``restart`` (robot, timeout, options), ``stop`` (robot,
+timeout), ``kill`` (robot) and ``daemons_ended``, the medium's ``move`` (robot, pos),
+``partition`` (groups), ``merge``, ``set_pair_quality`` (a, b, loss, both), ``shape``
+(robot, params) and ``batch`` (ops: medium operations applied as one change), what it
+holds: ``links`` (the linked pairs whose receiver is here: each pair is judged on the
+receiving host), ``positions``,
 ``read_log`` (robot: the tail of its daemon's log), tcpdumps: ``captures_start`` (targets:
 "medium", whose frames are kept only from this host's robots so that each frame is captured
 once across the hosts, or a robot: where each pcap is written) and ``captures_stop`` (their
@@ -120,6 +122,20 @@ class Agent:
     def add_remote(self, name: str, mac: str, pos: list[float]) -> None:
         self._lab().add_remote(name, mac=mac, pos=(pos[0], pos[1]))
 
+    def add_robots(self, robots: list[dict[str, Any]]) -> list[dict[str, str]]:
+        """Robots here (each as `add_robot` takes it), the medium loaded once; each one's
+        `robot` answer."""
+        with self._lab().batch():
+            for r in robots:
+                self.add_robot(**r)
+        return [self.robot(r["name"]) for r in robots]
+
+    def add_remotes(self, remotes: list[dict[str, Any]]) -> None:
+        """Other hosts' robots (each as `add_remote` takes it), the medium loaded once."""
+        with self._lab().batch():
+            for r in remotes:
+                self.add_remote(**r)
+
     def start_all(self, robots: list[str], timeout: float, options: dict[str, Any]) -> None:
         self._lab().start_all(robots, timeout=timeout, **options)
 
@@ -129,8 +145,10 @@ class Agent:
     def restart(self, robot: str, timeout: float, options: dict[str, Any]) -> None:
         self._lab().restart(robot, timeout=timeout, **options)
 
-    def stop(self, robot: str) -> int:
-        return int(self._lab().stop(robot))
+    def stop(self, robot: str, timeout: float | None = None) -> int:
+        if timeout is None:
+            return int(self._lab().stop(robot))
+        return int(self._lab().stop(robot, timeout))
 
     def kill(self, robot: str) -> None:
         self._lab().kill(robot)
@@ -286,10 +304,10 @@ class Agent:
             return {"ok": False, "error": f"{op}: bad request: {type(exc).__name__}: {exc}"}
 
 
-OPS = ("hello", "up", "add_robot", "add_remote", "robot", "start_all", "start", "restart",
-       "stop", "kill", "daemons_ended", *MEDIUM_OPS, "batch", "links", "positions", "read_log",
-       "captures_start", "captures_stop", "read_file", "usage", "span_bytes", "api", "neighbors",
-       "down")  # fmt: skip
+OPS = ("hello", "up", "add_robot", "add_remote", "add_robots", "add_remotes", "robot",
+       "start_all", "start", "restart", "stop", "kill", "daemons_ended", *MEDIUM_OPS, "batch",
+       "links", "positions", "read_log", "captures_start", "captures_stop", "read_file", "usage",
+       "span_bytes", "api", "neighbors", "down")  # fmt: skip
 
 
 def serve(inp: TextIO, out: TextIO) -> None:

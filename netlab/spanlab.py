@@ -194,8 +194,8 @@ class SpanLab:
                 "up", name=name, seed=self.seed, fleet=self.fleet, range=model, workdir=workdir,
                 span=here, runtime=self.runtime, image=self.image,
             )  # fmt: skip
-        for robot in self.robots:
-            self.add_robot(robot, pos=self.positions_at_start.get(robot, (0.0, 0.0)))
+        at = self.positions_at_start
+        self.add_robot_batch([(r, at.get(r, (0.0, 0.0)), None, None) for r in self.robots])
 
     def _greet(self, ssh: Ssh, given: str | None) -> str:
         """Start the host's agent; its underlay address (see `up`)."""
@@ -247,24 +247,61 @@ class SpanLab:
                   runtime: str | None = None) -> SpanRobot:  # fmt: skip
         """A robot on its host (numbered across the lab), known to the other hosts by its MAC
         and position."""
+        return self.add_robot_batch([(name, pos, mac, runtime)])[0]
+
+    def add_robot_batch(
+        self, specs: Sequence[tuple[str, Pos, str | None, str | None]]
+    ) -> list[SpanRobot]:
+        """Robots (name, position, MAC or None, runtime or None), each on its host: every
+        host adds its own at once, then every host learns the others' (two requests a host,
+        the hosts asked in parallel)."""
         if not self.parts:
             raise NetlabError(f"lab {self.name} is not up")
-        if name in self.placed:
-            raise NetlabError(f"lab {self.name} already has a robot {name!r}")
-        host = self._place(name)
-        index = len(self.index)
-        got = self.parts[host].call("add_robot", name=name, index=index, pos=list(pos),
-                                    mac=mac, runtime=runtime)  # fmt: skip
-        self.index[name] = index
-        self.placed[name] = host
-        self.macs[name] = str(got)
-        for dest, part in self.parts.items():
-            if dest != host:
-                part.call("add_remote", name=name, mac=self.macs[name], pos=list(pos))
-        info = self.parts[host].call("robot", robot=name)
-        robot = SpanRobot(name, host, info["ns"], info["mac"], info["iface"], Path(info["log"]))
-        self._robots[name] = robot
-        return robot
+        names = [spec[0] for spec in specs]
+        again = sorted({n for n in names if n in self.placed or names.count(n) > 1})
+        if again:
+            raise NetlabError(f"lab {self.name} already has robots {', '.join(again)}")
+        mine: dict[str, list[dict[str, Any]]] = {dest: [] for dest in self.parts}
+        for name, pos, mac, runtime in specs:
+            host = self._place(name)
+            self.placed[name] = host  # (counted by the next one's placement)
+            self.index[name] = len(self.index)
+            mine[host].append({"name": name, "index": self.index[name], "pos": list(pos),
+                               "mac": mac, "runtime": runtime})  # fmt: skip
+        got = self._on_hosts({d: ("add_robots", {"robots": rs}) for d, rs in mine.items() if rs})
+        for dest, infos in got.items():
+            for info, spec in zip(infos, mine[dest], strict=True):
+                name = spec["name"]
+                self.macs[name] = info["mac"]
+                self._robots[name] = SpanRobot(name, dest, info["ns"], info["mac"],
+                                               info["iface"], Path(info["log"]))  # fmt: skip
+        where = {spec[0]: spec[1] for spec in specs}
+        remotes = {
+            dest: [{"name": n, "mac": self.macs[n], "pos": list(where[n])}
+                   for n in names if self.placed[n] != dest]
+            for dest in self.parts
+        }  # fmt: skip
+        self._on_hosts({d: ("add_remotes", {"remotes": rs}) for d, rs in remotes.items() if rs})
+        return [self._robots[n] for n in names]
+
+    def _on_hosts(self, calls: Mapping[str, tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+        """One request to each of these hosts, in parallel; their answers (HostError naming
+        every host that failed, once all have answered)."""
+        with ThreadPoolExecutor(max_workers=max(1, len(calls))) as pool:
+            futures = {
+                dest: pool.submit(self.parts[dest].call, op, **kw)
+                for dest, (op, kw) in calls.items()
+            }
+        out: dict[str, Any] = {}
+        failed = []
+        for dest, future in futures.items():
+            try:
+                out[dest] = future.result()
+            except HostError as exc:
+                failed.append(str(exc))
+        if failed:
+            raise HostError("; ".join(failed))
+        return out
 
     def robot(self, ref: str) -> SpanRobot:
         try:
@@ -288,26 +325,10 @@ class SpanLab:
     ) -> None:
         """Start the robots' daemons on every host at once; return when all are healthy
         (HostError naming every host that failed, once all have answered)."""
-        work = {dest: mine for dest, mine in self._mine(refs).items() if mine}
-        with ThreadPoolExecutor(max_workers=max(1, len(work))) as pool:
-            futures = {
-                dest: pool.submit(
-                    self.parts[dest].call,
-                    "start_all",
-                    robots=mine,
-                    timeout=timeout,
-                    options=options,
-                )
-                for dest, mine in work.items()
-            }
-        failed = []
-        for future in futures.values():
-            try:
-                future.result()
-            except HostError as exc:
-                failed.append(str(exc))
-        if failed:
-            raise HostError("; ".join(failed))
+        self._on_hosts({
+            dest: ("start_all", {"robots": mine, "timeout": timeout, "options": options})
+            for dest, mine in self._mine(refs).items() if mine
+        })  # fmt: skip
 
     def start(self, ref: str, *, timeout: float = 30.0, **options: Any) -> None:
         self.host_of(ref).call("start", robot=ref, timeout=timeout, options=options)
@@ -316,7 +337,7 @@ class SpanLab:
         self.host_of(ref).call("restart", robot=ref, timeout=timeout, options=options)
 
     def stop(self, ref: str, timeout: float = 10.0) -> int:
-        return int(self.host_of(ref).call("stop", robot=ref))
+        return int(self.host_of(ref).call("stop", robot=ref, timeout=timeout))
 
     def kill(self, ref: str) -> None:
         self.host_of(ref).call("kill", robot=ref)

@@ -19,6 +19,10 @@ def add_robots(lab: LabLike, sc: Scenario) -> None:
     collision gets its own MAC, each other one a twin of it.  The medium is loaded once."""
     positions = sc.initial_positions()
     together = {r: group for group in sc.collisions() for r in group}
+    add_all = getattr(lab, "add_robot_batch", None)  # (a lab across hosts: a request a host)
+    if add_all is not None and not together:  # (a twin needs its first's MAC)
+        add_all([(name, positions[name], None, sc.runtime_of(name)) for name in sc.names])
+        return
     added: set[str] = set()
     with lab.batch():
         for name in sc.names:

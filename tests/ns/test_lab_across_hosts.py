@@ -112,6 +112,14 @@ def test_six_robots_on_three_hosts_find_each_other_split_along_the_hosts_merge_a
             lambda: lists(lab) == away,
             3 * BEACON + 1.5,
         )
+        # A daemon stopped on its host (SIGTERM within the timeout: exit 0, a Byebye) and
+        # one killed there: the others drop each.
+        assert lab.stop("r5", timeout=5.0) == 0
+        rest = ["r1", "r2", "r3", "r4"]
+        until("r5's Byebye is heard", lambda: all("r5" not in lab.neighbors(r) for r in rest), 2.0)
+        lab.kill("r4")
+        until("r4's silence is noticed", lambda: "r4" not in lab.neighbors("r1"), 3 * BEACON + 2)
+        assert lab.daemons_ended() == {}  # (ended by the lab's own steps: not unexpected)
     no_namespaces_of(lab)
     print(f"\nacross 3 hosts: healthy in {started:.2f} s, all list all {all_all:.2f} s later; "
           f"split seen in {split:.2f} s; merged in {merged:.2f} s; out of range dropped in "
