@@ -227,3 +227,34 @@ def test_a_topology_may_mix_kinds_and_be_partitioned_live(lab_name: str, tmp_pat
     poll("the partition reaches the container", lambda: base_lists([]), 20, step=0.5)
     assert netlab("merge", lab_name).returncode == 0
     poll("and the merge", lambda: base_lists(["scout"]), 20, step=0.5)
+
+
+def test_a_scenario_runs_with_container_robots_on_a_lab_across_hosts(
+    image: str, tmp_path: Path
+) -> None:
+    """partition-merge with container robots spread over two simulated hosts (namespaces with
+    their own sshd, reached over ssh): each host's agent runs its robots as containers of the
+    robot image, joined to its share of the medium; the checks pass as on one host, and no
+    container of any share is left."""
+    from netlab import hostsim
+    from netlab.hostsim import SimHosts
+
+    missing = hostsim.needs()
+    assert not missing, f"simulated hosts need {missing}: scripts/bootstrap.sh installs them"
+    name = unique_lab_name()
+    with SimHosts(naming.unique_lab_name("h"), 2, tmp_path / "hosts") as sim:
+        res = netlab("run", "partition-merge", "--runtime", "docker", "--image", image,
+                     "--lab", name, "--runs", str(tmp_path / "runs"), "--no-plots",
+                     "--hosts", "h1,h2", "--ssh-config", str(sim.ssh_config),
+                     "--host-python", sys.executable)  # fmt: skip
+        out = res.stdout[-3000:] + res.stderr[-2000:]
+        assert res.returncode == 0, out
+        assert "6 robots on one medium across 2 hosts" in res.stdout, out
+        assert "partition-merge: PASSED, 5 of 5 checks ok" in res.stdout, out
+        (folder,) = (tmp_path / "runs").iterdir()
+        meta = json.loads((folder / "run.json").read_text())["meta"]
+        assert meta["runtime"] == "docker" and sorted(meta["hosts"]) == ["h1", "h2"]
+        assert "discovery up: robot r1" in (folder / "logs" / "r1.log").read_text()
+        shares = [f"{name[:7]}{i}" for i in range(2)]
+        assert [c for s in shares for c in docker.labelled(s)] == []
+        assert [ns for s in shares for ns in kernel.list_ns(naming.prefix(s))] == []
