@@ -10,8 +10,8 @@ hosts' robots as remote ones) and takes it down when told ``down``, when its std
 
 Operations: ``hello`` (its netlab version, the address its ssh session came in on, its
 clock), ``up`` (name, seed, fleet, workdir, span: vni, local, hosts, port; range: the
-range model as `netlab.ranges.model_to_json` writes it, or radius: a unit disc's; runtime
-and image: the robots' kind, as `netlab.lab.Lab` takes them),
+range model as `netlab.ranges.model_to_json` writes it, or radius: a unit disc's; runtime,
+image and addressing: the robots' kind and addresses, as `netlab.lab.Lab` takes them),
 ``add_robot`` (name, index, pos, mac, runtime: its MAC), ``add_remote`` (name, mac, pos),
 ``add_robots`` and ``add_remotes`` (robots, remotes: lists of those, the medium loaded once),
 ``robot`` (robot: its ns, mac, iface and log here), the daemons' ``start_all`` (robots,
@@ -87,7 +87,8 @@ class Agent:
 
     def up(self, name: str, seed: int, fleet: int, workdir: str | None, span: dict[str, Any],
            radius: float | None = None, range: dict[str, Any] | None = None,
-           runtime: str = "namespace", image: str | None = None) -> str:  # fmt: skip
+           runtime: str = "namespace", image: str | None = None,
+           addressing: str = "manual") -> str:  # fmt: skip
         from netlab.lab import Lab
         from netlab.ranges import RangeModel, model_from_json
         from netlab.vxlan import span_of
@@ -103,7 +104,7 @@ class Agent:
         kind: dict[str, Any] = {"runtime": runtime, **({"image": image} if image else {})}
         lab = Lab(name, seed=seed, fleet=fleet, range_model=model,
                   workdir=Path(workdir) if workdir is not None else None,
-                  span=plan, **kind)  # fmt: skip
+                  span=plan, addressing=addressing, **kind)  # fmt: skip
         lab.up()
         self.lab = lab
         return lab.name

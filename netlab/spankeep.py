@@ -289,7 +289,7 @@ class Keeper:
     def bring_up(self) -> Any:
         from netlab import scenario
         from netlab.ranges import UnitDisc
-        from netlab.spanlab import SpanLab
+        from netlab.spanlab import SpanLab, check_medium
 
         sc, plan = self.sc, self.plan
         config = Path(plan["ssh_config"]) if plan["ssh_config"] else None
@@ -301,12 +301,8 @@ class Keeper:
         lab = SpanLab(self.name, hosts, place=placed, seed=sc.seed, fleet=sc.fleet,
                       range_model=UnitDisc(sc.radius), workdir=plan["workdir"],
                       runtime=sc.runtime, image=plan["image"] if sc.runtime == "docker" else None,
-                      )  # fmt: skip
-        if sc.medium != "wired" or sc.addressing != "manual":
-            raise NetlabError(
-                f"lab {self.name}: a lab across hosts runs the wired medium with manual "
-                f"addressing; not medium = {sc.medium!r}, addressing = {sc.addressing!r}"
-            )
+                      addressing=sc.addressing)  # fmt: skip
+        check_medium(self.name, sc.medium)
         t0 = time.monotonic()
         lab.up()
         try:

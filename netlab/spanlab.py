@@ -88,6 +88,7 @@ class SpanLab:
     workdir: str | None = None  # the shares' parent folder on each host (default: a new one)
     runtime: str = "namespace"
     image: str | None = None
+    addressing: str = "manual"  # or "auto": each sdfrd derives, probes and defends its own
     port: int = DEFAULT_PORT
     env: Mapping[str, str] = field(default_factory=dict)
     parts: dict[str, Part] = field(default_factory=dict)
@@ -192,7 +193,7 @@ class SpanLab:
             here = {**span, "local": addr}
             self.parts[ssh.destination].call(
                 "up", name=name, seed=self.seed, fleet=self.fleet, range=model, workdir=workdir,
-                span=here, runtime=self.runtime, image=self.image,
+                span=here, runtime=self.runtime, image=self.image, addressing=self.addressing,
             )  # fmt: skip
         at = self.positions_at_start
         self.add_robot_batch([(r, at.get(r, (0.0, 0.0)), None, None) for r in self.robots])
@@ -525,6 +526,15 @@ class SpanLab:
         return kept
 
 
+def check_medium(lab: str, medium: str) -> None:
+    """NetlabError unless `medium` can span hosts (the wired one: a radio lives in one VM)."""
+    if medium != "wired":
+        raise NetlabError(
+            f"lab {lab}: a lab across hosts runs the wired medium, not medium = {medium!r} "
+            "(radios are one kernel's: mac80211_hwsim)"
+        )
+
+
 def span_backend(
     hosts: Sequence[tuple[Ssh, str | None]],
     *,
@@ -540,23 +550,11 @@ def span_backend(
     placed = dict(robots or {})
 
     def make(spec: LabSpec) -> LabLike:
-        refused = [
-            f"{what} = {value!r}"
-            for what, value, alone in (
-                ("medium", spec.medium, "wired"),
-                ("addressing", spec.addressing, "manual"),
-            )
-            if value != alone
-        ]
-        if refused:
-            raise NetlabError(
-                f"lab {spec.name}: a lab across hosts runs the wired medium with manual "
-                f"addressing; not {', '.join(refused)}"
-            )
+        check_medium(spec.name, spec.medium)
         return SpanLab(spec.name, hosts, place=placed, seed=spec.seed, fleet=spec.fleet,
                        range_model=spec.range_model, workdir=workdir, runtime=spec.runtime,
                        image=spec.image if spec.runtime == "docker" else None,
-                       port=port, env=dict(env or {}))  # fmt: skip
+                       addressing=spec.addressing, port=port, env=dict(env or {}))  # fmt: skip
 
     def connect(lab: LabLike, robot: str) -> ClientLike:
         assert isinstance(lab, SpanLab)

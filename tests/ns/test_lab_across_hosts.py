@@ -359,3 +359,20 @@ def test_a_lab_whose_keeper_was_killed_is_gone_from_every_host_and_down_says_so(
     assert spankeep.load(name) is None and not spankeep.socket_path(name).exists()
     assert not shares_left([f"{name[:7]}{i}" for i in range(2)])
     assert not spankeep.log_path(name).exists()  # (its error said it all)
+
+
+def test_silent_departure_and_ip_collision_pass_across_three_hosts(
+    sim: SimHosts, tmp_path: Path
+) -> None:
+    """Two more bundled scenarios, spread over the three hosts by `netlab run --hosts`: a
+    robot killed with kill -9 and a link cut, each noticed and back, within the deadlines they
+    have on one host; and sdfrd's own addresses (`addressing = "auto"`), two robots deriving
+    the same one on different hosts, the conflict found and settled across the VXLAN."""
+    for name in ("silent-departure", "ip-collision"):
+        done = netlab("run", name, "--runs", str(tmp_path / name), "--no-plots",
+                      "--hosts", "h1,h2,h3", "--ssh-config", str(sim.ssh_config),
+                      "--host-python", sys.executable, timeout=300)  # fmt: skip
+        out = done.stdout + done.stderr
+        assert done.returncode == 0, out
+        assert "on one medium across 3 hosts" in out, out
+        assert re.search(rf"{name}: PASSED, (\d+) of \1 checks ok", out), out
