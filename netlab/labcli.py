@@ -216,8 +216,15 @@ def cmd_down(args: argparse.Namespace) -> int:
 
 def cmd_status(args: argparse.Namespace) -> int:
     names = [args.name] if args.name else manifest.names()
-    spans = [n for n in ([args.name] if args.name else spankeep.names()) if spankeep.load(n)]
-    across = {n: spankeep.call(n, "status") for n in spans}
+    across: dict[str, dict[str, Any]] = {}
+    for name in [args.name] if args.name else spankeep.names():
+        try:
+            if spankeep.load(name) is not None:
+                across[name] = spankeep.call(name, "status")
+        except NetlabError as exc:  # (a dead keeper: said, the others still listed)
+            if args.name:
+                raise
+            across[name] = {"error": str(exc)}
     labs = []
     for name in names:
         record = manifest.load(name)
@@ -238,6 +245,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     if labs or stray or not across:
         print(format_status(labs, stray))
     for name, span in across.items():
+        if "error" in span:
+            print(f"lab {name} (across hosts): {span['error']}")
+            continue
         print(f"lab {name}: {span['robots']} robots {span['where']}, keeper pid {span['pid']}; "
               f"{span['linked_pairs']} linked pairs")  # fmt: skip
         for host, h in span["hosts"].items():

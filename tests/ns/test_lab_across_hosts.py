@@ -347,6 +347,8 @@ def test_a_lab_whose_keeper_was_killed_is_gone_from_every_host_and_down_says_so(
     until("every host took its share down", lambda: not shares_left(shares), 30.0)
     status = netlab("status", name)
     assert status.returncode == 1 and "its keeper (pid" in status.stderr, status.stderr
+    listing = netlab("status")  # every lab: this one's trouble said, the others listed
+    assert listing.returncode == 0 and f"lab {name} (across hosts): " in listing.stdout
     down = netlab("down", name)
     assert down.returncode == 0, down.stdout + down.stderr
     assert "was gone: asking each host" in down.stdout
