@@ -13,7 +13,6 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -30,22 +29,10 @@ if TYPE_CHECKING:
 
 
 def _topology(args: argparse.Namespace) -> Scenario:
-    """The lab `up` makes, as a scenario with no timeline: the file's, flags overriding it."""
-    from netlab import scenario
+    """The lab `up` makes (`netlab.scenario.topology.for_up`)."""
+    from netlab.scenario.topology import for_up
 
-    flags = {
-        key: getattr(args, key)
-        for key in ("seed", "fleet", "radius", "spacing", "runtime", "medium")
-        if getattr(args, key) is not None
-    }
-    try:
-        if args.topology is None:
-            return scenario.Scenario("up", robots=args.robots, **{"spacing": 0.0, **flags})
-        sc = scenario.load(scenario.find(args.topology))
-        scenario.check_layout(sc)
-        return replace(sc, **flags)
-    except scenario.ScenarioError as exc:
-        raise NetlabError(str(exc)) from None
+    return for_up(args)
 
 
 def cmd_up(args: argparse.Namespace) -> int:

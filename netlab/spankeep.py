@@ -269,7 +269,7 @@ class Keeper:
     """Holds one `SpanLab` and answers on its socket until `down` or a signal."""
 
     def __init__(self, plan: dict[str, Any]) -> None:
-        from netlab.labcli import _topology
+        from netlab.scenario.topology import for_up
 
         self.plan = plan
         self.name = str(plan["name"])
@@ -278,7 +278,7 @@ class Keeper:
             args.topology = str(Path(plan["cwd"]) / plan["topology"])
             if not Path(args.topology).exists():
                 args.topology = plan["topology"]  # a bundled scenario's name
-        self.sc = _topology(args)
+        self.sc = for_up(args)
         self.stopping = False
 
     def bring_up(self) -> Any:

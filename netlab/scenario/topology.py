@@ -5,6 +5,10 @@ whose steps only lay out the medium)."""
 
 from __future__ import annotations
 
+import argparse
+from dataclasses import replace
+
+from netlab.errors import NetlabError
 from netlab.scenario.backend import LabLike
 from netlab.scenario.model import Scenario, step_ref
 from netlab.scenario.spec import ScenarioError, pairs_of, select_groups
@@ -12,6 +16,26 @@ from netlab.scenario.steps import Merge, Move, Partition, Quality, Shape, twin_m
 
 #: The steps a topology file may have.
 LAYOUT_STEPS = (Partition, Merge, Move, Quality, Shape)
+
+
+def for_up(args: argparse.Namespace) -> Scenario:
+    """The lab `netlab up` makes, as a scenario with no timeline: `args.topology`'s file (or
+    `args.robots` robots), `args`' flags overriding it; NetlabError naming a file's mistake."""
+    from netlab.scenario.files import find, load
+
+    flags = {
+        key: getattr(args, key)
+        for key in ("seed", "fleet", "radius", "spacing", "runtime", "medium")
+        if getattr(args, key, None) is not None
+    }
+    try:
+        if args.topology is None:
+            return Scenario("up", robots=args.robots, **{"spacing": 0.0, **flags})
+        sc = load(find(args.topology))
+        check_layout(sc)
+        return replace(sc, **flags)
+    except ScenarioError as exc:
+        raise NetlabError(str(exc)) from None
 
 
 def add_robots(lab: LabLike, sc: Scenario) -> None:
