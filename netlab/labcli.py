@@ -20,7 +20,7 @@ from netlab import cleanup, docker, kernel, manifest, naming, pingall, spankeep
 from netlab.errors import LabNotFoundError, NetlabError, UnknownRobotError
 from netlab.lab import Lab
 from netlab.manifest import Manifest, RobotRecord
-from netlab.ranges import Topology, UnitDisc
+from netlab.ranges import Topology, UnitDisc, linked_pairs
 from netlab.status import format_status, lab_status, orphans
 from sdfr.hints import did_you_mean
 
@@ -37,6 +37,7 @@ def _topology(args: argparse.Namespace) -> Scenario:
 
 def cmd_up(args: argparse.Namespace) -> int:
     from netlab import scenario
+    from netlab.scenario.topology import start_for_up
 
     sc = _topology(args)
     hosts = host_list(getattr(args, "hosts", None)) or list(sc.hosts)
@@ -70,13 +71,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         for line in scenario.lay_out(lab, sc):
             print(f"  {line}")
         if args.start:
-            t1 = time.monotonic()
-            opts: dict[str, Any] = dict(sc.sdfrd)
-            beacon = args.beacon_interval or (sc.beacon if args.topology else None)
-            if beacon is not None:
-                opts["beacon_interval"] = beacon
-            lab.start_all(timeout=max(60.0, 2.0 * n), **opts)
-            print(f"sdfrd runs on all {n} robots, healthy in {time.monotonic() - t1:.2f} s")
+            print(start_for_up(lab, sc, args.beacon_interval, args.topology is not None))
         else:
             print(
                 "sdfrd runs on no robot: `netlab up ... --start` starts it on every robot; "
@@ -103,8 +98,7 @@ def _attached(name: str) -> Iterator[Lab]:
 
 
 def _links_summary(lab: Lab) -> str:
-    pairs = {frozenset(p) for p in lab.links()}
-    return f"{len(pairs)} linked pairs of {len(lab.robots)} robots"
+    return f"{linked_pairs(lab.links())} linked pairs of {len(lab.robots)} robots"
 
 
 def host_list(text: str | None) -> list[str]:

@@ -28,6 +28,11 @@ Pair = tuple[str, str]
 Links = dict[Pair, float]
 
 
+def linked_pairs(links: Iterable[Pair]) -> int:
+    """Unordered pairs among these (sender, receiver) links: linked in at least one direction."""
+    return len({frozenset(p) for p in links})
+
+
 class RangeModel(Protocol):
     """Distance in metres to link quality."""
 

@@ -32,6 +32,7 @@ from typing import Any
 from netlab import manifest, naming
 from netlab.errors import LabExistsError, LabNotFoundError, NetlabError
 from netlab.hosts import HostError, Ssh
+from netlab.ranges import linked_pairs
 
 #: How long a command waits for the keeper's answer (s): `down` takes every share down.
 ANSWER_TIMEOUT = 300.0
@@ -284,6 +285,7 @@ class Keeper:
     def bring_up(self) -> Any:
         from netlab import scenario
         from netlab.ranges import UnitDisc
+        from netlab.scenario.topology import start_for_up
         from netlab.spanlab import SpanLab, check_medium
 
         sc, plan = self.sc, self.plan
@@ -310,13 +312,7 @@ class Keeper:
             for line in scenario.lay_out(lab, sc):
                 say(f"  {line}")
             if plan["start"]:
-                t1 = time.monotonic()
-                opts: dict[str, Any] = dict(sc.sdfrd)
-                beacon = plan["beacon_interval"] or (sc.beacon if plan["topology"] else None)
-                if beacon is not None:
-                    opts["beacon_interval"] = beacon
-                lab.start_all(timeout=max(60.0, 2.0 * n), **opts)
-                say(f"sdfrd runs on all {n} robots, healthy in {time.monotonic() - t1:.2f} s")
+                say(start_for_up(lab, sc, plan["beacon_interval"], bool(plan["topology"])))
             else:
                 say("sdfrd runs on no robot: `netlab up ... --start` starts it on every robot")
         except BaseException:
@@ -368,7 +364,7 @@ class Keeper:
                 "session": "up" if code is None else f"ended (exit {code})",
             }
         try:
-            pairs = len({frozenset(p) for p in lab.links()})
+            pairs = linked_pairs(lab.links())
             ended = lab.daemons_ended()
         except HostError as exc:
             pairs, ended = None, {"?": str(exc)}
@@ -383,11 +379,11 @@ class Keeper:
             lab.partition(groups)
         except ValueError as exc:
             raise NetlabError(f"partition: {exc}") from None
-        return {"linked_pairs": len({frozenset(p) for p in lab.links()})}
+        return {"linked_pairs": linked_pairs(lab.links())}
 
     def op_merge(self, lab: Any) -> dict[str, Any]:
         lab.merge()
-        return {"linked_pairs": len({frozenset(p) for p in lab.links()})}
+        return {"linked_pairs": linked_pairs(lab.links())}
 
     def op_shape(self, lab: Any, robots: list[str], params: dict[str, Any]) -> dict[str, Any]:
         for robot in robots:

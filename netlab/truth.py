@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from netlab.analysis import natural_order
+from netlab.ranges import linked_pairs
 
 __all__ = ["Pair", "TruthLog", "TruthState", "in_force"]
 
@@ -40,7 +41,7 @@ class TruthState:
 
     def linked_pairs(self) -> int:
         """Unordered pairs the medium links (in at least one direction)."""
-        return len({frozenset(p) for p in self.links})
+        return linked_pairs(self.links)
 
     def to_json(self) -> dict[str, object]:
         return {
