@@ -7,7 +7,7 @@ event log are `bench.peer_node`'s, shared with the python-zeroconf peer."""
 
 from __future__ import annotations
 
-import json
+import math
 import os
 import signal
 import subprocess
@@ -17,6 +17,8 @@ from typing import Any
 
 import pytest
 
+from bench.paper_measure import read_events
+from bench.side_by_side import own_services, replay
 from netlab.lab import Lab
 from tests.support.fleets import unique_lab_name
 from tests.support.waiting import poll
@@ -30,31 +32,18 @@ LEASE_MS = 2000
 
 
 def events(path: Path) -> list[dict[str, Any]]:
-    try:
-        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    except FileNotFoundError:
-        return []
+    return read_events([path]) if path.exists() else []
 
 
 def listed(path: Path) -> set[tuple[str, str]]:
-    """What the node lists now, from its log's seen and gone."""
-    now: set[tuple[str, str]] = set()
-    for e in events(path):
-        if e["op"] == "seen":
-            now.add((e["robot"], e["sid"]))
-        elif e["op"] == "gone":
-            now.discard((e["robot"], e["sid"]))
-    return now
+    """What the node lists now (the side-by-side's reading of its seen and gone)."""
+    return set().union(*replay(events(path), math.inf).values())
 
 
 def published(path: Path) -> set[tuple[str, str]]:
-    now: set[tuple[str, str]] = set()
-    for e in events(path):
-        if e["op"] == "publish":
-            now.add((e["robot"], e["sid"]))
-        elif e["op"] == "unpublish":
-            now.discard((e["robot"], e["sid"]))
-    return now
+    """The services the node (its log is named after it) has up now."""
+    robot = path.stem
+    return {(robot, sid) for sid in own_services(events(path), robot, math.inf)}
 
 
 def test_zenoh_peers_list_each_others_services_a_new_one_a_leave_and_a_silent_death(
