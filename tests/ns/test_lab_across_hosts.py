@@ -302,6 +302,9 @@ def test_up_status_partition_shape_merge_down_across_hosts_from_the_command_line
 
         assert span["daemons_ended"] == {}, span  # (healthy at start: up said so)
 
+        # A robot is reached in its host's share, there (one machine here: the shares' too).
+        there = netlab("exec", record.shares["h3"], "r3", "--", "ip", "-o", "link", "show")
+        assert there.returncode == 0 and "eth0" in there.stdout, there.stderr
         wrong = netlab("exec", name, "r3", "--", "true")
         assert wrong.returncode == 1
         assert f"r3 is on h3, in its share {record.shares['h3']} there" in wrong.stderr
@@ -330,17 +333,21 @@ def test_up_status_partition_shape_merge_down_across_hosts_from_the_command_line
 
 
 def test_a_lab_whose_keeper_was_killed_is_gone_from_every_host_and_down_says_so(
-    sim: SimHosts,
+    sim: SimHosts, tmp_path: Path
 ) -> None:
-    """Kill -9 the keeper: the hosts take their shares down as its sessions end; status says
-    the keeper is gone; down asks each host and removes the record."""
+    """A topology file's [hosts] spreads `netlab up`'s lab (r3 placed on h1).  Kill -9 the
+    keeper: the hosts take their shares down as its sessions end; status says the keeper is
+    gone; down asks each host and removes the record."""
     name = naming.unique_lab_name("k")
     ssh = ["--ssh-config", str(sim.ssh_config), "--host-python", sys.executable]
-    up = netlab("up", name, "--robots", "3", "--hosts", "h1,h2", *ssh, timeout=300)
+    topology = tmp_path / "three.toml"
+    topology.write_text('[scenario]\nname = "three"\nrobots = 3\n\n[hosts]\nh1 = ["r3"]\nh2 = []\n')
+    up = netlab("up", name, "-t", str(topology), *ssh, timeout=300)
     assert up.returncode == 0, up.stdout + up.stderr
     assert "sdfrd runs on no robot" in up.stdout
     record = spankeep.load(name)
     assert record is not None
+    assert record.robots == {"r1": "h2", "r2": "h1", "r3": "h1"}, record.robots
     shares = list(record.shares.values())
     assert len(shares_left(shares)) >= 3  # each robot's namespace, at least
     os.kill(record.pid, signal.SIGKILL)
