@@ -12,8 +12,8 @@ Operations: ``hello`` (its netlab version, the address its ssh session came in o
 clock), ``up`` (name, seed, fleet, workdir, span: vni, local, hosts, port; range: the
 range model as `netlab.ranges.model_to_json` writes it, or radius: a unit disc's; runtime,
 image and addressing: the robots' kind and addresses, as `netlab.lab.Lab` takes them),
-``add_robot`` (name, index, pos, mac, runtime: its MAC), ``add_remote`` (name, mac, pos),
-``add_robots`` and ``add_remotes`` (robots, remotes: lists of those, the medium loaded once),
+``add_robots`` (robots: each name, index, pos, mac, runtime; the medium loaded once: each one's
+``robot`` answer) and ``add_remotes`` (remotes: each name, mac, pos),
 ``robot`` (robot: its ns, mac, iface and log here), the daemons' ``start_all`` (robots,
 timeout, options), ``start``, ``restart`` (robot, timeout, options), ``stop`` (robot,
 timeout), ``kill`` (robot) and ``daemons_ended``, the medium's ``move`` (robot, pos),
@@ -109,33 +109,26 @@ class Agent:
         self.lab = lab
         return lab.name
 
-    def add_robot(self, name: str, index: int, pos: list[float], mac: str | None = None,
-                  runtime: str | None = None) -> str:  # fmt: skip
-        robot = self._lab().add_robot(
-            name, index=index, pos=(pos[0], pos[1]), mac=mac, runtime=runtime
-        )
-        return str(robot.mac)
-
     def robot(self, robot: str) -> dict[str, str]:
         r = self._lab().robot(robot)
         return {"ns": r.ns, "mac": r.mac, "iface": r.iface, "log": str(r.log)}
 
-    def add_remote(self, name: str, mac: str, pos: list[float]) -> None:
-        self._lab().add_remote(name, mac=mac, pos=(pos[0], pos[1]))
-
     def add_robots(self, robots: list[dict[str, Any]]) -> list[dict[str, str]]:
-        """Robots here (each as `add_robot` takes it), the medium loaded once; each one's
-        `robot` answer."""
-        with self._lab().batch():
+        """Robots here (each: name, index, pos, mac, runtime), the medium loaded once; each
+        one's `robot` answer."""
+        lab = self._lab()
+        with lab.batch():
             for r in robots:
-                self.add_robot(**r)
+                lab.add_robot(r["name"], index=r["index"], pos=(r["pos"][0], r["pos"][1]),
+                              mac=r.get("mac"), runtime=r.get("runtime"))  # fmt: skip
         return [self.robot(r["name"]) for r in robots]
 
     def add_remotes(self, remotes: list[dict[str, Any]]) -> None:
-        """Other hosts' robots (each as `add_remote` takes it), the medium loaded once."""
-        with self._lab().batch():
+        """Other hosts' robots (each: name, mac, pos), the medium loaded once."""
+        lab = self._lab()
+        with lab.batch():
             for r in remotes:
-                self.add_remote(**r)
+                lab.add_remote(r["name"], mac=r["mac"], pos=(r["pos"][0], r["pos"][1]))
 
     def start_all(self, robots: list[str], timeout: float, options: dict[str, Any]) -> None:
         self._lab().start_all(robots, timeout=timeout, **options)
@@ -147,9 +140,9 @@ class Agent:
         self._lab().restart(robot, timeout=timeout, **options)
 
     def stop(self, robot: str, timeout: float | None = None) -> int:
-        if timeout is None:
-            return int(self._lab().stop(robot))
-        return int(self._lab().stop(robot, timeout))
+        """(No timeout: the lab's own; `netlab.daemons` is not imported before a lab is up.)"""
+        lab = self._lab()
+        return int(lab.stop(robot) if timeout is None else lab.stop(robot, timeout))
 
     def kill(self, robot: str) -> None:
         self._lab().kill(robot)
@@ -305,7 +298,7 @@ class Agent:
             return {"ok": False, "error": f"{op}: bad request: {type(exc).__name__}: {exc}"}
 
 
-OPS = ("hello", "up", "add_robot", "add_remote", "add_robots", "add_remotes", "robot",
+OPS = ("hello", "up", "add_robots", "add_remotes", "robot",
        "start_all", "start", "restart", "stop", "kill", "daemons_ended", *MEDIUM_OPS, "batch",
        "links", "positions", "read_log", "captures_start", "captures_stop", "read_file", "usage",
        "span_bytes", "api", "neighbors", "down")  # fmt: skip

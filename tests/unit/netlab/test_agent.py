@@ -41,7 +41,7 @@ def test_each_request_gets_one_answer_saying_what_was_wrong() -> None:
     assert [a["ok"] for a in got] == [False] * 7 + [True]
     assert str(got[0]["error"]).startswith("not a request: Expecting value")
     assert got[1]["error"] == "not a request: a request is a JSON object"
-    assert str(got[2]["error"]).startswith("no operation 'reboot' (one of hello, up, add_robot,")
+    assert str(got[2]["error"]).startswith("no operation 'reboot' (one of hello, up, add_robots,")
     assert got[3]["error"] == "no lab here yet: `up` first"
     assert str(got[4]["error"]).startswith("move: bad request: TypeError:")
     assert str(got[5]["error"]).startswith("batch: ['down'] are not medium operations (move,")
