@@ -71,8 +71,13 @@ def test_zenoh_peers_list_each_others_services_a_new_one_a_leave_and_a_silent_de
         poll("every peer lists every other's services", lambda: everyone_lists(ROBOTS), 20.0)
 
         os.kill(procs["r1"].pid, signal.SIGUSR1)  # one more service on r1
+
+        # The signal is handled in r1's own time: wait for its log to say it published.
+        def r1_published_it() -> bool:
+            return any(sid.startswith("p1001x") for _, sid in published(log["r1"]))
+
+        poll("r1 publishes its new service", r1_published_it, 5.0)
         poll("r1's new service is listed", lambda: everyone_lists(ROBOTS), 5.0)
-        assert any(sid.startswith("p1001x") for _, sid in published(log["r1"]))
 
         os.kill(procs["r3"].pid, signal.SIGTERM)  # a graceful leave: its tokens undeclared
         assert procs["r3"].wait(10) == 0
