@@ -29,6 +29,11 @@ radio) module=drivers/net/wireless/mac80211_hwsim.ko ;;
 esac
 VM_VENV=.venv/vm
 
+# Both VM tiers may start at once (`make test-vms`): one installs while the other waits.
+mkdir -p .venv
+exec 9>.venv/.bootstrap-vm.lock
+flock 9
+
 die() {
     echo "bootstrap-vm: $*" >&2
     exit 1
