@@ -40,7 +40,7 @@ _PCAP_HEADER = struct.Struct("<IHHiIII")
 
 @dataclass(slots=True)
 class PortTraffic:
-    """One robot's traffic on one UDP port: what it sent (tx) and what reached it (rx)."""
+    """One robot's traffic on one port: what it sent (tx) and what reached it (rx)."""
 
     tx: Totals = field(default_factory=Totals)
     rx: Totals = field(default_factory=Totals)
@@ -74,28 +74,50 @@ def _frames(path: Path) -> Iterator[tuple[float, bytes, int]]:
         at += caplen
 
 
-def udp_traffic(
-    pcap: Path, own_mac: str, ports: Sequence[int], window: tuple[float, float]
-) -> dict[int, PortTraffic]:
-    """Per UDP port, what a robot's capture saw it send (source MAC its own) and receive in
-    `window` (wall-clock seconds, the pcap's clock): IPv4 over Ethernet, port as source or
-    destination.  A frame's size is its original length (the whole frame, no FCS)."""
+#: A transport and a port: ("udp", 5353), ("tcp", 7447).
+Flow = tuple[str, int]
+_PROTOCOLS = {17: "udp", 6: "tcp"}
+
+
+def ip_traffic(
+    pcap: Path, own_mac: str, flows: Sequence[Flow], window: tuple[float, float]
+) -> dict[Flow, PortTraffic]:
+    """Per flow (UDP or TCP and a port, as source or destination), what a robot's capture saw
+    it send (source MAC its own) and receive in `window` (wall-clock seconds, the pcap's
+    clock), IPv4 over Ethernet.  A frame's size is its original length (the whole frame, no
+    FCS); its payload is the transport's (from the IP header's total length, so a frame cut
+    short by the capture's snap length still counts whole).  A TCP segment counts as one
+    datagram, pure ACKs included."""
     mac = bytes.fromhex(own_mac.replace(":", ""))
-    out = {port: PortTraffic() for port in ports}
+    out = {flow: PortTraffic() for flow in flows}
     start, end = window
     for t, frame, length in _frames(pcap):
         if not start <= t <= end or len(frame) < 42 or frame[12:14] != b"\x08\x00":
             continue
+        proto = _PROTOCOLS.get(frame[23])
         ihl = (frame[14] & 0x0F) * 4
-        if frame[23] != 17 or len(frame) < 14 + ihl + 8:
+        at = 14 + ihl
+        if proto is None or len(frame) < at + (20 if proto == "tcp" else 8):
             continue
-        sport, dport, ulen = struct.unpack_from("!HHH", frame, 14 + ihl)
-        port = sport if sport in out else dport if dport in out else None
-        if port is None:
+        sport, dport = struct.unpack_from("!HH", frame, at)
+        flow = (proto, sport) if (proto, sport) in out else (proto, dport)
+        if flow not in out:
             continue
-        flow = out[port].tx if frame[6:12] == mac else out[port].rx
-        flow.count(ulen - 8, length)
+        if proto == "udp":
+            payload = struct.unpack_from("!H", frame, at + 4)[0] - 8
+        else:
+            total = struct.unpack_from("!H", frame, 16)[0]
+            payload = total - ihl - (frame[at + 12] >> 4) * 4
+        (out[flow].tx if frame[6:12] == mac else out[flow].rx).count(payload, length)
     return out
+
+
+def udp_traffic(
+    pcap: Path, own_mac: str, ports: Sequence[int], window: tuple[float, float]
+) -> dict[int, PortTraffic]:
+    """`ip_traffic` of these UDP ports, by port."""
+    got = ip_traffic(pcap, own_mac, [("udp", port) for port in ports], window)
+    return {port: got[("udp", port)] for port in ports}
 
 
 def mdns_messages(pcap: Path, own_mac: str, window: tuple[float, float]) -> dict[str, int]:
