@@ -57,6 +57,9 @@ fmt: $(STAMP)
 
 # A bench's recipe: `$(call run-bench,NAME ARGS)` makes runs/ (where benches write their JSON),
 # then runs `python -m bench.NAME ARGS`.
+# A comma inside a $(call ...) argument.
+, := ,
+
 define run-bench
 mkdir -p runs
 $(BIN)/python -m bench.$(1)
@@ -76,6 +79,13 @@ bench: $(STAMP)
 # python-zeroconf doing the same job in the same lab (~6 min; root). runs/bench-footprint.json.
 bench-footprint: $(STAMP)
 	$(call run-bench,footprint --profile > /dev/null)
+
+# SDfR beside what robotics teams use instead (bench/peers.py: python-zeroconf, Zenoh), every
+# system at once on one lab, 70 services a robot under the paper's churn: 6 and 20 robots, clean
+# and at 10 % loss on every pair (~45 min; root). runs/bench-peers.json, a Markdown table and
+# JSON per run and the bytes-per-robot figure in runs/side-by-side-*/.
+bench-peers: $(STAMP)
+	$(call run-bench,side_by_side --robots 6$(,)20 --loss 0$(,)0.1 --out runs/bench-peers.json)
 
 # 10, 50 and 100 robots with real daemons in one lab (scenario scale-100), 2 minutes of stay
 # each: set-up, convergence, CPU and PSS per daemon, bytes per robot on the air, and how they

@@ -17,8 +17,8 @@ Measured, per run: publish / unpublish / neighbour-list latency (p50, p99: the p
 figure 4); CPU (% of one core) and PSS (MiB) of each daemon's whole process tree, sampled
 every 2 s (figure 5); TX and RX bytes per robot over the 5 minutes of load from each
 robot's capture, as UDP payload and as whole frames (figure 6); and how long each change took
-to be seen on the other robots.  Then `bench.side_by_side` (python-zeroconf beside SDfR on
-one lab) and the bytes per robot at 2, 6 and 20 robots (`--scale`), unless skipped.
+to be seen on the other robots.  Then `bench.side_by_side` (python-zeroconf and Zenoh beside
+SDfR on one lab) and the bytes per robot at 2, 6 and 20 robots (`--scale`), unless skipped.
 
 Everything goes into one run folder (runs/bench-paper-<time>/): each run's pcaps and
 daemon logs, `figures.json` (the data of every figure, the paper's numbers beside ours),
@@ -378,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="RUN",
         help="only these runs of the grid (e.g. static-2-30 dynamic-6-70); 'none' for none",
     )
-    p.add_argument("--no-side-by-side", action="store_true", help="skip python-zeroconf")
+    p.add_argument("--no-side-by-side", action="store_true", help="skip the side-by-side (python-zeroconf, Zenoh)")
     p.add_argument(
         "--scale",
         type=int,

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from bench import peers_report
 from bench.paper_measure import PAPER, PAPER_MEMORY_MIB, dig
 
 if TYPE_CHECKING:
@@ -263,22 +264,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"| under {p['neighbors_ms_max']:g} | — | {span('cpu_percent')} "
         f"| under {PAPER_MEMORY_MIB:.0f} | {span('tx_kB_5min')} | {span('rx_kB_5min')} | — |"
     )
-    rows = dig(result, "side_by_side", "table")
-    if rows:
-        sbs = result["side_by_side"]
-        out += [
-            "",
-            f"Side by side, one lab of {sbs.get('robots')} robots, "
-            f"{sbs.get('publishers_per_robot')} services each under the same churn "
-            f"(SDfR at its {sbs.get('sdfr_beacon_s'):g} s beacon):",
-            "",
-            "| measure | SDfR | python-zeroconf | zeroconf ÷ SDfR | note |",
-            "| --- | --- | --- | --- | --- |",
-        ]
-        for row in rows:
-            vals = [row["sdfr"], row["zeroconf"], row["ratio"]]
-            cells = [_n(v, "g") if not isinstance(v, str) else v for v in vals]
-            out.append(f"| {row['measure']} | {' | '.join(cells)} | {row.get('note', '')} |")
+    if dig(result, "side_by_side", "table"):
+        out += ["", *peers_report.markdown(result["side_by_side"])]
     scale = result.get("scale") or []
     if scale:
         out += [

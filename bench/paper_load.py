@@ -21,7 +21,8 @@ could be unpublished with a random delay between 5 seconds"):
 Requests go over plain HTTP/1.1 keep-alive connections to the API's TCP address, one per
 thread (`bench.load.Worker`); a latency is the time from sending the request to having the
 whole answer.  Besides the paper's threads a *watcher* reads the neighbour list every
-`--watch-interval` s and notes when each (robot, service) appears and goes: with the
+`--watch-interval` s (or, with `--watch-events`, follows the robot's own notifications,
+`GET /events`) and notes when each (robot, service) appears and goes: with the
 publishers' own notes (`--events`, JSON lines, wall-clock times) it tells how long a change
 took to be seen on the other robots.  The summary is one JSON object on stdout.
 """
@@ -35,13 +36,13 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import IO, Any
 
 from bench.load import Worker, merge, summary
-from sdfr.client import calls
+from sdfr.client import Client, calls
 from sdfr.client.calls import new_service_id
 
 
@@ -56,6 +57,9 @@ class Plan:
     publish_delay: float = 10.0
     unpublish_max: float = 5.0
     watch_interval: float = 0.05
+    #: The watcher follows GET /events (the robot's own notifications) instead of reading the
+    #: neighbour list every `watch_interval`.
+    watch_events: bool = False
     seed: int = 0
     #: Seconds before a publisher's first publish (None: `publish_delay`, the paper's).
     first_delay: float | None = None
@@ -210,6 +214,55 @@ def watcher(w: Worker, plan: Plan, stop: threading.Event, log: Log, reads: list[
         stop.wait(plan.watch_interval)
 
 
+def events_watcher(api: str, plan: Plan, log: Log, reads: list[int]) -> None:
+    """The watcher on the robot's own notifications: GET /events (robot changes), a change
+    noted when its event arrives.  The whole list is read when the stream (re)opens, on a
+    resync, and when an event left a robot's services out (too many to carry: the event says
+    `services_truncated`); that read's changes are noted at the read's time."""
+    client = Client(api, timeout=30.0)
+    reader = Client(api, timeout=30.0)
+    seen: set[tuple[str, str]] = set()
+
+    def note(now: set[tuple[str, str]], t: float) -> None:
+        for robot, sid in sorted(now - seen):
+            log.write(t=t, op="seen", at=plan.robot, robot=robot, sid=sid)
+        for robot, sid in sorted(seen - now):
+            log.write(t=t, op="gone", at=plan.robot, robot=robot, sid=sid)
+        seen.clear()
+        seen.update(now)
+
+    def read_all() -> None:
+        note(listed(json.dumps({"neighbors": reader.neighbors()}).encode()), time.time())
+        reads[0] += 1
+
+    for change in client.watch(["robot", "resync"], on_open=read_all):
+        t = time.time()
+        now = after(seen, change.event, str(change.robot_id), change.data)
+        if now is None:
+            read_all()
+        else:
+            note(now, t)
+
+
+def after(
+    seen: set[tuple[str, str]], event: str, robot: str, data: Mapping[str, Any]
+) -> set[tuple[str, str]] | None:
+    """What is listed after this event of GET /events, from what was before; None when the
+    event does not say (a resync, or a robot's services left out: the list must be read)."""
+    if event == "resync" or any(k.endswith("_truncated") for k in data):
+        return None
+    if event == "robot.appeared":
+        return {x for x in seen if x[0] != robot} | {
+            (robot, str(s["id"])) for s in data.get("services", [])
+        }
+    if event == "robot.services":
+        removed = {(robot, str(sid)) for sid in data.get("removed", [])}
+        return (seen - removed) | {(robot, str(s["id"])) for s in data.get("added", [])}
+    if event in ("robot.left", "robot.unreachable", "robot.forgotten"):
+        return {x for x in seen if x[0] != robot}
+    return set(seen)
+
+
 def run(
     plan: Plan, host: str, port: int, log: Log, stop: threading.Event | None = None
 ) -> dict[str, Any]:
@@ -232,11 +285,14 @@ def run(
         per_thread.append(out)
         spawn(consumer, Worker(host, port), stop, out)
     spawn(unpublisher, plan, board, stop)
-    if plan.watch_interval > 0:
+    if plan.watch_interval > 0 and not plan.watch_events:
         spawn(watcher, Worker(host, port), plan, stop, log, reads)
     began = time.time()
     for t in threads:
         t.start()
+    if plan.watch_events:  # (blocked on its stream: not joined; ends with the process)
+        api = f"{host}:{port}"
+        threading.Thread(target=events_watcher, args=(api, plan, log, reads), daemon=True).start()
     stop.wait(plan.duration)
     stop.set()
     ended = time.time()
@@ -267,6 +323,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--publish-delay", type=float, default=10.0)
     p.add_argument("--unpublish-max", type=float, default=5.0)
     p.add_argument("--watch-interval", type=float, default=0.05, help="0: no watcher")
+    p.add_argument(
+        "--watch-events",
+        action="store_true",
+        help="the watcher follows GET /events instead of reading the neighbour list",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--first-delay", type=float, help="before the first publish (default 10 s)")
     p.add_argument("--churn-at", type=float, help="wall-clock time churn starts (default: start)")
@@ -282,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
         publish_delay=args.publish_delay,
         unpublish_max=args.unpublish_max,
         watch_interval=args.watch_interval,
+        watch_events=args.watch_events,
         seed=args.seed,
         first_delay=args.first_delay,
         churn_at=args.churn_at,

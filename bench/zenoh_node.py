@@ -1,7 +1,9 @@
 """A robot of the side-by-side bench done with Zenoh (eclipse-zenoh, peer mode) instead of SDfR.
 
 Run inside a robot's namespace, with Zenoh's defaults for a peer: multicast scouting on
-224.0.0.224:7446, gossip on, sessions over TCP.  Each service is a liveliness token,
+224.0.0.224:7446, gossip on, sessions over TCP (accepted on port 7447 of the robot's address,
+pinned so that captures can count them; `--scout-port` and `--listen-port` let a second
+Zenoh fleet run apart in the same lab).  Each service is a liveliness token,
 ``sdfrbench/<robot>/<sid>`` (Zenoh's own presence: the token goes when it is undeclared, or
 when its session is lost, after the transport's lease, 10 s by default); its attributes are
 answered by the robot's queryable ``sdfrbench/<robot>/*/attrs``.  A service of another robot
@@ -29,6 +31,7 @@ import zenoh
 from bench.peer_node import PeerNode, arguments, attributes
 
 ROOT = "sdfrbench"
+SCOUT_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (its port: --scout-port)
 GET_TIMEOUT_S = 3.0
 RETRY_FIRST_S = 1.0
 RETRY_MAX_S = 30.0
@@ -52,6 +55,13 @@ class Node(PeerNode):
     def config(self) -> zenoh.Config:
         conf: zenoh.Config = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
+        # Its port pinned (Zenoh's own default is any free one) so that captures can count it.
+        conf.insert_json5(
+            "listen/endpoints", json.dumps([f"tcp/{self.args.ip}:{self.args.listen_port}"])
+        )
+        conf.insert_json5(
+            "scouting/multicast/address", json.dumps(f"{SCOUT_GROUP}:{self.args.scout_port}")
+        )
         if self.args.lease_ms is not None:
             conf.insert_json5("transport/link/tx/lease", str(self.args.lease_ms))
         return conf
@@ -143,8 +153,21 @@ class Node(PeerNode):
 
 def main(argv: list[str] | None = None) -> int:
     p = arguments(__doc__ or "")
-    p.add_argument("--lease-ms", type=int, default=None,
-                   help="Zenoh's transport lease (default: Zenoh's own, 10000)")  # fmt: skip
+    p.add_argument(
+        "--lease-ms",
+        type=int,
+        default=None,
+        help="Zenoh's transport lease (default: Zenoh's own, 10000)",
+    )
+    p.add_argument(
+        "--scout-port",
+        type=int,
+        default=7446,
+        help="multicast scouting's UDP port (Zenoh's default: 7446)",
+    )
+    p.add_argument("--listen-port", type=int, default=7447,
+                   help="the TCP port its sessions are accepted on (Zenoh's default: any free "
+                        "one; pinned so captures count it)")  # fmt: skip
     args = p.parse_args(argv)
     with open(args.events, "w", buffering=1) as events:
         asyncio.run(Node(args, events).run())

@@ -58,21 +58,30 @@ def test_the_paper_runs_measure_what_its_figures_show(smoke: dict[str, Any]) -> 
     assert smoke["scale"][0]["robots"] == 2 and smoke["scale"][0]["load"]["consumers"] == 0
 
 
-def test_python_zeroconf_and_sdfr_side_by_side(smoke: dict[str, Any]) -> None:
+def test_sdfr_python_zeroconf_and_zenoh_side_by_side(smoke: dict[str, Any]) -> None:
     side = smoke["side_by_side"]
+    systems = ("sdfr", "zeroconf", "zenoh")
+    assert tuple(side["systems"]) == systems
     rows = {row["measure"].split(" (")[0]: row for row in side["table"]}
     for measure in (
         "start-up: all robots list all services",
         "a new service seen on all peers",
         "a graceful leave seen on all peers",
     ):
-        assert rows[measure]["sdfr"] is not None, measure
-        assert rows[measure]["zeroconf"] is not None, measure
-    # A 1 s beacon: a silent death is seen within its 3 beacons, a partition too.
+        for system in systems:
+            assert rows[measure][system] is not None, (measure, system)
+    # A 1 s beacon: a silent death is seen within its 3 beacons; to Zenoh a kill -9 closes
+    # TCP sessions (seen at once), and a partition is its silent departure: its 10 s lease is
+    # longer than the smoke's partition, so only SDfR's halves must have dropped each other.
     assert rows["a kill -9 seen on all peers"]["sdfr"] is not None
-    assert side["traffic"]["per_5_min_kB"]["zeroconf"]["tx_payload"]["min"] > 0
-    assert side["traffic"]["per_5_min_kB"]["sdfr"]["tx_payload"]["min"] > 0
-    assert side["resources"]["zeroconf"]["pss_mib"]["min"] > 0
+    assert rows["a kill -9 seen on all peers"]["zenoh"] is not None
+    assert rows["6 s partition: each half stops listing the other"]["sdfr"] is not None
+    for system in systems:
+        assert side["traffic"]["per_5_min_kB"][system]["tx_payload"]["min"] > 0, system
+        assert side["traffic"]["tx_datagrams_per_s"][system]["min"] > 0, system
+        assert side["resources"][system]["pss_mib"]["min"] > 0, system
+    # Zenoh's sessions are TCP: its bytes are counted (not only its UDP scouting).
+    assert side["traffic"]["flows"]["zenoh"] == ["udp 7446", "tcp 7447"]
 
 
 def test_every_figure_is_drawn_with_its_data(smoke: dict[str, Any]) -> None:

@@ -17,8 +17,8 @@ from typing import Any
 
 import pytest
 
+from bench.listed import own_services, replay
 from bench.paper_measure import read_events
-from bench.side_by_side import own_services, replay
 from netlab.lab import Lab
 from tests.support.fleets import unique_lab_name
 from tests.support.waiting import poll

@@ -11,9 +11,7 @@ from typing import Any
 
 import pytest
 
-from bench.paper_load import Board
-from bench.paper_measure import Reading, mdns_messages, propagation, udp_traffic, usage
-from bench.side_by_side import (
+from bench.listed import (
     everyone_lists,
     first_time,
     halves_apart,
@@ -21,6 +19,15 @@ from bench.side_by_side import (
     nobody_lists_these,
     own_services,
     replay,
+)
+from bench.paper_load import Board
+from bench.paper_measure import (
+    Reading,
+    ip_traffic,
+    mdns_messages,
+    propagation,
+    udp_traffic,
+    usage,
 )
 from bench.zc_node import TYPE, instance, owner
 
@@ -64,6 +71,35 @@ def test_udp_traffic_counts_what_a_robot_sent_and_received_per_port(tmp_path: Pa
     assert (rx.datagrams, rx.payload_bytes) == (1, 50)
     tx, rx = got[5353].tx, got[5353].rx
     assert (tx.datagrams, rx.payload_bytes, rx.frame_bytes) == (0, 70, 112)
+
+
+def tcp_frame(src_mac: str, sport: int, dport: int, payload: bytes, options: int = 0) -> bytes:
+    eth = bytes.fromhex(("020000000009" + src_mac.replace(":", "")) + "0800")
+    tcp = struct.pack("!HHIIBBHHH", sport, dport, 1, 1, (5 + options) << 4, 0x18, 512, 0, 0)
+    tcp += b"\x01" * 4 * options + payload
+    ip = struct.pack(
+        "!BBHHHBBH4s4s", 0x45, 0, 20 + len(tcp), 0, 0, 64, 6, 0, b"\n\x01\x00\x01",
+        b"\n\x01\x00\x02",
+    )  # fmt: skip
+    return eth + ip + tcp
+
+
+def test_ip_traffic_counts_tcp_segments_and_udp_datagrams_apart(tmp_path: Path) -> None:
+    p = pcap(
+        tmp_path / "r1.pcap",
+        [
+            (10.0, tcp_frame(MINE, 7447, 50000, b"x" * 100, options=3)),  # 12 bytes of options
+            (10.5, tcp_frame(OTHER, 50000, 7447, b"")),  # a pure ACK
+            (11.0, tcp_frame(OTHER, 50001, 7447, b"y" * 30)),
+            (11.5, frame(MINE, 7447, 7447, b"u" * 20)),  # UDP 7447: not TCP 7447
+            (12.0, tcp_frame(MINE, 40000, 8000, b"other port")),
+        ],
+    )
+    got = ip_traffic(p, MINE, [("tcp", 7447), ("udp", 7447)], (9.0, 20.0))
+    tcp, udp = got[("tcp", 7447)], got[("udp", 7447)]
+    assert (tcp.tx.datagrams, tcp.tx.payload_bytes, tcp.tx.frame_bytes) == (1, 100, 166)
+    assert (tcp.rx.datagrams, tcp.rx.payload_bytes) == (2, 30)
+    assert (udp.tx.datagrams, udp.tx.payload_bytes, udp.rx.datagrams) == (1, 20, 0)
 
 
 def test_mdns_messages_tells_queries_from_responses(tmp_path: Path) -> None:
@@ -218,3 +254,105 @@ def test_traffic_scales_each_robots_bytes_to_five_minutes(tmp_path: Path) -> Non
         "rx_frame": 0.09,
     }
     assert got["per_5_min_kB"]["tx_payload"]["mean"] == pytest.approx(0.11, abs=0.01)
+
+
+def test_the_side_by_side_table_has_a_column_and_a_ratio_per_system() -> None:
+    from bench.peers_report import markdown, table
+
+    result: dict[str, Any] = {
+        "robots": 6, "publishers_per_robot": 70, "kill_cap_s": 120.0, "partition_s": 40.0,
+        "timing_s": {"after_merge": 60.0},
+        "systems": {"sdfr": {"label": "SDfR 0.2.0", "knob": "its defaults (beacon 10 s)"},
+                    "zeroconf": {"label": "python-zeroconf 0.154", "knob": "its defaults"},
+                    "zenoh": {"label": "Zenoh 1.1", "knob": "its defaults (lease 10 s)"}},
+        "startup_s": {"sdfr": 2.0, "zeroconf": 5.0, "zenoh": None},
+        "kill_9_s": {"sdfr": 25.0, "zeroconf": None, "zenoh": 0.0},
+        "stale_after_leave": {"sdfr": [], "zeroconf": [["r1", "p3x1"]], "zenoh": []},
+        "traffic": {"flows": {"sdfr": ["udp 1900"], "zeroconf": ["udp 5353"],
+                              "zenoh": ["udp 7446", "tcp 7447"]},
+                    "per_5_min_kB": {"sdfr": {"tx_payload": {"mean": 10.0}},
+                                     "zenoh": {"tx_payload": {"mean": 25.0}}}},
+    }  # fmt: skip
+    result["table"] = rows = table(result)
+    by = {row["measure"].split(" (")[0]: row for row in rows}
+    start = by["start-up: all robots list all services"]
+    assert (start["sdfr"], start["zeroconf"], start["zenoh"]) == (2.0, 5.0, None)
+    assert start["ratio"] == {"zeroconf": 2.5}  # no ratio to a value not measured
+    tx = next(row for row in rows if row["measure"].startswith("TX kB per robot per 5 min (pay"))
+    assert tx["ratio"] == {"zenoh": 2.5}
+    kill = by["a kill -9 seen on all peers"]
+    assert "Zenoh 1.1: the kernel closes" in kill["note"] and "zeroconf" not in kill["note"]
+    assert "python-zeroconf 0.154 1" in by["a graceful leave seen on all peers"]["note"]
+    lines = markdown(result)
+    assert lines[2] == (
+        "| measure | SDfR 0.2.0 | python-zeroconf 0.154 | Zenoh 1.1 | python-zeroconf 0.154 ÷ "
+        "SDfR | Zenoh 1.1 ÷ SDfR | note |"
+    )
+    assert lines[3].count("---") == 7
+    start_line = next(line for line in lines if line.startswith("| start-up"))
+    assert "| 2.00 | 5.00 | not seen | 2.50 | — |" in start_line
+
+
+def test_a_peer_unknown_or_not_installed_is_refused_by_name() -> None:
+    from bench.peers import PEERS, Peer, capture_filter, chosen
+
+    assert [p.name for p in chosen(["zenoh", "zeroconf"])] == ["zenoh", "zeroconf"]
+    with pytest.raises(ValueError, match="no peer 'avahi': the side-by-side knows zeroconf, "):
+        chosen(["avahi"])
+    ghost = Peer("ghost", "Ghost", "bench.ghost", (("udp", 1),), "ghost-dist", "no_such_module")
+    assert ghost.missing() == "Ghost: ghost-dist is not installed (pip install -e '.[dev]')"
+    assert ghost.version() == "?"
+    assert capture_filter(PEERS["zenoh"].flows) == "udp port 7446 or tcp port 7447"
+    # Two Zenoh fleets in one lab must not hear each other: their ports differ.
+    assert not set(PEERS["zenoh"].flows) & set(PEERS["zenoh-lease2s"].flows)
+
+
+def test_the_events_watcher_follows_each_robot_change_and_reads_the_list_when_told_little() -> None:
+    from bench.paper_load import after
+
+    seen = {("r2", "a"), ("r3", "b")}
+    got = after(seen, "robot.appeared", "r4", {"services": [{"id": "c"}, {"id": "d"}]})
+    assert got == seen | {("r4", "c"), ("r4", "d")}
+    moved = after(seen, "robot.services", "r2", {"added": [{"id": "e"}], "removed": ["a"]})
+    assert moved == {("r2", "e"), ("r3", "b")}
+    for gone in ("robot.left", "robot.unreachable", "robot.forgotten"):
+        assert after(seen, gone, "r3", {}) == {("r2", "a")}
+    assert after(seen, "robot.indicator", "r2", {"indicator": 0.5}) == seen
+    # Too many services to carry, or events lost: the watcher must read the whole list.
+    assert after(seen, "robot.services", "r2", {"added_truncated": True, "removed": []}) is None
+    assert after(seen, "resync", "None", {}) is None
+    assert seen == {("r2", "a"), ("r3", "b")}  # never changed in place
+
+
+def test_the_bytes_figure_draws_a_line_per_system_and_loss(tmp_path: Path) -> None:
+    from bench.peers_report import floor_line, growth_figure
+
+    def result(n: int, loss: float, sdfr_kb: float) -> dict[str, Any]:
+        return {
+            "robots": n,
+            "timing_s": {"loss": loss},
+            "systems": {"sdfr": {"label": "SDfR"}, "zenoh": {"label": "Zenoh"}},
+            "traffic": {"per_5_min_kB": {
+                "sdfr": {"tx_frame": {"mean": sdfr_kb}, "rx_frame": {"mean": 5 * sdfr_kb}},
+                "zenoh": {"tx_frame": {"mean": 90.0}},  # its rx not measured: left out
+            }},
+            "floor": {"idle": {"from": "r1", "to": "r2", "p50_ms": 0.08, "p99_ms": 0.2,
+                               "sent": 200, "arrived": 200}},
+        }  # fmt: skip
+
+    runs = [result(6, 0.0, 40.0), result(20, 0.0, 60.0), result(6, 0.1, 45.0)]
+    path = growth_figure(runs, tmp_path / "bytes.png")
+    assert path.read_bytes()[:4] == b"\x89PNG" and path.stat().st_size > 10_000
+    line = floor_line(runs[0])
+    assert line == ["The floor, a bare multicast datagram r1 to r2: before the systems started "
+                    "p50 0.08 ms, p99 0.20 ms (200 of 200 arrived)."]  # fmt: skip
+
+
+def test_the_side_by_side_takes_sizes_and_losses_as_lists_and_says_what_is_wrong() -> None:
+    import argparse
+
+    from bench.side_by_side import numbers
+
+    assert numbers(int)("6,20") == [6, 20] and numbers(float)("0,0.1") == [0.0, 0.1]
+    with pytest.raises(argparse.ArgumentTypeError, match="'6,x': not a comma-separated list"):
+        numbers(int)("6,x")
