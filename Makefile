@@ -85,7 +85,7 @@ bench-footprint: $(STAMP)
 # and at 10 % loss on every pair (~45 min; root). runs/bench-peers.json, a Markdown table and
 # JSON per run and the bytes-per-robot figure in runs/side-by-side-*/.
 bench-peers: $(STAMP)
-	$(call run-bench,side_by_side --robots 6$(,)20 --loss 0$(,)0.1 --out runs/bench-peers.json)
+	$(call run-bench,side_by_side --robots 6$(,)20 --loss 0$(,)10 --out runs/bench-peers.json)
 
 # 10, 50 and 100 robots with real daemons in one lab (scenario scale-100), 2 minutes of stay
 # each: set-up, convergence, CPU and PSS per daemon, bytes per robot on the air, and how they

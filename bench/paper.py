@@ -378,7 +378,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="RUN",
         help="only these runs of the grid (e.g. static-2-30 dynamic-6-70); 'none' for none",
     )
-    p.add_argument("--no-side-by-side", action="store_true", help="skip the side-by-side (python-zeroconf, Zenoh)")
+    p.add_argument(
+        "--no-side-by-side",
+        action="store_true",
+        help="skip the side-by-side (python-zeroconf, Zenoh)",
+    )
     p.add_argument(
         "--scale",
         type=int,

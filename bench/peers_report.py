@@ -86,7 +86,7 @@ def markdown(r: dict[str, Any]) -> list[str]:
     head = [v["label"] for v in systems.values()]
     head += [f"{systems[p]['label']} ÷ SDfR" for p in peers]
     loss = dig(r, "timing_s", "loss") or 0.0
-    medium = f"{loss:.0%} loss on every pair" if loss else "a clean medium"
+    medium = f"{loss:g} % loss on every pair" if loss else "a clean medium"
     out = [
         f"Side by side, one lab of {r.get('robots')} robots on {medium}, "
         f"{r.get('publishers_per_robot')} services each under the same churn, every system at "
@@ -133,7 +133,7 @@ def growth_figure(results: list[dict[str, Any]], path: Path) -> Path:
             for system, info in these[0]["systems"].items():
                 ys = [dig(r, "traffic", "per_5_min_kB", system, key, "mean") for r in these]
                 xs = [r["robots"] for r, y in zip(these, ys, strict=True) if y is not None]
-                label = info["label"] + (f", {loss:.0%} loss" if loss else "")
+                label = info["label"] + (f", {loss:g} % loss" if loss else "")
                 ax.plot(xs, [y for y in ys if y is not None], marker="o",
                         linestyle="--" if loss else "-", label=label)  # fmt: skip
         ax.set_yscale("log")

@@ -11,7 +11,7 @@ is listed and when it is not any more, told through each system's own notificati
 `GET /events` on the robot; a peer: its node's callbacks, a service counting once its
 attributes are known).  All act at the same instants, and the same
 pcaps hold every system's traffic (each peer's ports: `bench.peers`), so every figure is
-measured like for like.  `--loss` puts the same loss on every pair of robots.
+measured like for like.  `--loss` puts the same loss (in %) on every pair of robots.
 
 The steps, timed for every system from the moment they were asked:
 
@@ -96,7 +96,7 @@ class Timing:
     kill_cap: float = 120.0
     partition: float = 40.0
     after_merge: float = 60.0
-    loss: float = 0.0  # on every pair of robots, both ways
+    loss: float = 0.0  # % on every pair of robots, both ways (netlab's pair loss)
 
 
 FULL = Timing()
@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--churn", type=float, help="seconds of churn (default: the timing's)")
     p.add_argument("--loss", type=numbers(float), default=[0.0],
-                   help="loss on every pair of robots, both ways, 0-1, or several: 0,0.1 "
+                   help="loss in % on every pair of robots, both ways, or several: 0,10 "
                         "(default: 0, a clean medium)")  # fmt: skip
     p.add_argument("--peers", default=",".join(DEFAULT_PEERS),
                    help=f"the systems beside SDfR, comma-separated, of {', '.join(PEERS)} "

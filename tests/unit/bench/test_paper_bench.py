@@ -261,7 +261,7 @@ def test_the_side_by_side_table_has_a_column_and_a_ratio_per_system() -> None:
 
     result: dict[str, Any] = {
         "robots": 6, "publishers_per_robot": 70, "kill_cap_s": 120.0, "partition_s": 40.0,
-        "timing_s": {"after_merge": 60.0},
+        "timing_s": {"after_merge": 60.0, "loss": 10.0},  # netlab's pair loss: in %
         "systems": {"sdfr": {"label": "SDfR 0.2.0", "knob": "its defaults (beacon 10 s)"},
                     "zeroconf": {"label": "python-zeroconf 0.154", "knob": "its defaults"},
                     "zenoh": {"label": "Zenoh 1.1", "knob": "its defaults (lease 10 s)"}},
@@ -284,6 +284,7 @@ def test_the_side_by_side_table_has_a_column_and_a_ratio_per_system() -> None:
     assert "Zenoh 1.1: the kernel closes" in kill["note"] and "zeroconf" not in kill["note"]
     assert "python-zeroconf 0.154 1" in by["a graceful leave seen on all peers"]["note"]
     lines = markdown(result)
+    assert lines[0].startswith("Side by side, one lab of 6 robots on 10 % loss on every pair, ")
     assert lines[2] == (
         "| measure | SDfR 0.2.0 | python-zeroconf 0.154 | Zenoh 1.1 | python-zeroconf 0.154 ÷ "
         "SDfR | Zenoh 1.1 ÷ SDfR | note |"
@@ -340,7 +341,7 @@ def test_the_bytes_figure_draws_a_line_per_system_and_loss(tmp_path: Path) -> No
                                "sent": 200, "arrived": 200}},
         }  # fmt: skip
 
-    runs = [result(6, 0.0, 40.0), result(20, 0.0, 60.0), result(6, 0.1, 45.0)]
+    runs = [result(6, 0.0, 40.0), result(20, 0.0, 60.0), result(6, 10.0, 45.0)]
     path = growth_figure(runs, tmp_path / "bytes.png")
     assert path.read_bytes()[:4] == b"\x89PNG" and path.stat().st_size > 10_000
     line = floor_line(runs[0])
@@ -353,6 +354,6 @@ def test_the_side_by_side_takes_sizes_and_losses_as_lists_and_says_what_is_wrong
 
     from bench.side_by_side import numbers
 
-    assert numbers(int)("6,20") == [6, 20] and numbers(float)("0,0.1") == [0.0, 0.1]
+    assert numbers(int)("6,20") == [6, 20] and numbers(float)("0,10") == [0.0, 10.0]
     with pytest.raises(argparse.ArgumentTypeError, match="'6,x': not a comma-separated list"):
         numbers(int)("6,x")
