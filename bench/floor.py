@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.load import summary
 from bench.paper_lab import ROOT
 
 GROUP = "239.255.77.77"
@@ -58,7 +59,7 @@ def _send(ip: str, count: int) -> None:
 
 def measure(lab: Any, sender: str, receiver: str, folder: Path, count: int = 200) -> dict[str, Any]:
     """`count` datagrams from `sender` to `receiver` in `lab`: their one-way time (ms: p50,
-    p99, max) and how many arrived."""
+    p90, p99, max, mean; none when none arrived) and how many arrived."""
     out = folder / f"floor-{sender}-{receiver}.json"
     argv = [sys.executable, "-m", "bench.floor"]
     rx = lab.popen(receiver, [*argv, "recv", "--ip", lab.robot(receiver).ip,
@@ -76,21 +77,9 @@ def measure(lab: Any, sender: str, receiver: str, folder: Path, count: int = 200
         if rx.poll() is None:
             rx.kill()
             rx.wait()
-    took = json.loads(out.read_text()) if out.exists() else []
-    ms = sorted(t * 1000 for t in took)
-
-    def at(q: float) -> float | None:
-        return round(ms[min(len(ms) - 1, int(q * len(ms)))], 3) if ms else None
-
-    return {
-        "sent": count,
-        "arrived": len(ms),
-        "p50_ms": at(0.5),
-        "p99_ms": at(0.99),
-        "max_ms": round(ms[-1], 3) if ms else None,
-        "from": sender,
-        "to": receiver,
-    }
+    took: list[float] = json.loads(out.read_text()) if out.exists() else []
+    times = {k: v for k, v in summary(took).items() if k != "count"}  # p50_ms, p99_ms, max_ms...
+    return {"sent": count, "arrived": len(took), **times, "from": sender, "to": receiver}
 
 
 def main(argv: list[str] | None = None) -> int:

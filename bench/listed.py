@@ -17,11 +17,18 @@ def replay(events: Iterable[dict[str, Any]], until: float) -> Listed:
     for e in events:
         if float(e["t"]) > until:
             break
-        if e["op"] in ("seen", "gone"):
-            s = listed.setdefault(str(e["at"]), set())
-            item = (str(e["robot"]), str(e["sid"]))
-            (s.add if e["op"] == "seen" else s.discard)(item)
+        _apply(listed, e)
     return listed
+
+
+def _apply(listed: Listed, e: dict[str, Any]) -> bool:
+    """A seen or gone event applied to what each watcher lists; False for any other event."""
+    if e["op"] not in ("seen", "gone"):
+        return False
+    s = listed.setdefault(str(e["at"]), set())
+    item = (str(e["robot"]), str(e["sid"]))
+    (s.add if e["op"] == "seen" else s.discard)(item)
+    return True
 
 
 def first_time(
@@ -41,12 +48,8 @@ def first_time(
             checked = True
             if holds(listed):
                 return 0.0
-        if e["op"] in ("seen", "gone"):
-            s = listed.setdefault(str(e["at"]), set())
-            item = (str(e["robot"]), str(e["sid"]))
-            (s.add if e["op"] == "seen" else s.discard)(item)
-            if t >= since and holds(listed):
-                return round(t - since, 3)
+        if _apply(listed, e) and t >= since and holds(listed):
+            return round(t - since, 3)
     if not checked and holds(listed):
         return 0.0
     return None

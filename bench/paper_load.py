@@ -36,7 +36,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import IO, Any
@@ -189,10 +189,14 @@ def consumer(w: Worker, stop: threading.Event, out: dict[str, list[float]]) -> N
 
 def listed(body: bytes) -> set[tuple[str, str]]:
     """(robot, service id) of every service of every reachable neighbour in an answer."""
-    answer = json.loads(body)
+    return listed_in(json.loads(body)["neighbors"])
+
+
+def listed_in(neighbors: Iterable[Mapping[str, Any]]) -> set[tuple[str, str]]:
+    """(robot, service id) of every service of every reachable neighbour."""
     return {
         (str(n["robot_id"]), str(s["id"]))
-        for n in answer["neighbors"]
+        for n in neighbors
         if n.get("reachable", True)
         for s in n["services"]
     }
@@ -232,7 +236,7 @@ def events_watcher(api: str, plan: Plan, log: Log, reads: list[int]) -> None:
         seen.update(now)
 
     def read_all() -> None:
-        note(listed(json.dumps({"neighbors": reader.neighbors()}).encode()), time.time())
+        note(listed_in(reader.neighbors()), time.time())
         reads[0] += 1
 
     for change in client.watch(["robot", "resync"], on_open=read_all):

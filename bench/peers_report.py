@@ -10,6 +10,11 @@ from typing import Any
 from bench.paper_measure import dig
 
 
+def _loss(r: dict[str, Any]) -> float:
+    """The run's loss on every pair, in % (0: a clean medium)."""
+    return float(dig(r, "timing_s", "loss") or 0.0)
+
+
 def _fmt(v: Any, unit: str = " s") -> str:
     return "not seen" if v is None else f"{v:.2f}{unit}" if isinstance(v, float) else str(v)
 
@@ -85,7 +90,7 @@ def markdown(r: dict[str, Any]) -> list[str]:
     peers = list(systems)[1:]
     head = [v["label"] for v in systems.values()]
     head += [f"{systems[p]['label']} ÷ SDfR" for p in peers]
-    loss = dig(r, "timing_s", "loss") or 0.0
+    loss = _loss(r)
     medium = f"{loss:g} % loss on every pair" if loss else "a clean medium"
     out = [
         f"Side by side, one lab of {r.get('robots')} robots on {medium}, "
@@ -126,10 +131,10 @@ def growth_figure(results: list[dict[str, Any]], path: Path) -> Path:
 
     fig = Figure(figsize=(7.5, 4.2), dpi=120, layout="constrained")
     axes = fig.subplots(1, 2, sharex=True)
-    runs = sorted(results, key=lambda r: (dig(r, "timing_s", "loss") or 0.0, r["robots"]))
+    runs = sorted(results, key=lambda r: (_loss(r), r["robots"]))
     for ax, key, title in ((axes[0], "tx_frame", "sent"), (axes[1], "rx_frame", "received")):
-        for loss in sorted({dig(r, "timing_s", "loss") or 0.0 for r in runs}):
-            these = [r for r in runs if (dig(r, "timing_s", "loss") or 0.0) == loss]
+        for loss in sorted({_loss(r) for r in runs}):
+            these = [r for r in runs if _loss(r) == loss]
             for system, info in these[0]["systems"].items():
                 ys = [dig(r, "traffic", "per_5_min_kB", system, key, "mean") for r in these]
                 xs = [r["robots"] for r, y in zip(these, ys, strict=True) if y is not None]

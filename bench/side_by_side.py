@@ -417,12 +417,11 @@ def churn_traffic(
         "per_robot": per,
     }
     if "zeroconf" in flows:
-        window_s = seconds
         messages = {
             r: mdns_messages(fleet.folder / f"{r}.pcap", macs[r], window) for r in per["zeroconf"]
         }
         out["zeroconf_sent_per_robot_per_5_min"] = {
-            key: round(per_5_min(sum(m[key] for m in messages.values()) / len(messages), window_s))
+            key: round(per_5_min(sum(m[key] for m in messages.values()) / len(messages), seconds))
             for key in ("queries", "responses", "response_bytes")
         }
     return out
