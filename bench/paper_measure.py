@@ -87,16 +87,26 @@ def ip_traffic(
     clock), IPv4 over Ethernet.  A frame's size is its original length (the whole frame, no
     FCS); its payload is the transport's (from the IP header's total length, so a frame cut
     short by the capture's snap length still counts whole).  A TCP segment counts as one
-    datagram, pure ACKs included."""
+    datagram, pure ACKs included.  A UDP datagram the sender's IP fragmented (Fast DDS sends
+    up to 64 kB at once) counts once, with its whole payload, when its first fragment is seen;
+    its later fragments (which carry no UDP header, and which the capture must have kept:
+    `capture_filter`) add their frames."""
     mac = bytes.fromhex(own_mac.replace(":", ""))
     out = {flow: PortTraffic() for flow in flows}
     start, end = window
+    fragmented: dict[bytes, Totals] = {}  # source, destination, IP id, protocol -> its totals
     for t, frame, length in _frames(pcap):
         if not start <= t <= end or len(frame) < 42 or frame[12:14] != b"\x08\x00":
             continue
         proto = _PROTOCOLS.get(frame[23])
         ihl = (frame[14] & 0x0F) * 4
         at = 14 + ihl
+        frag = struct.unpack_from("!H", frame, 20)[0]
+        datagram = frame[26:34] + frame[18:20] + frame[23:24]
+        if frag & 0x1FFF:  # a later fragment
+            if datagram in fragmented:
+                fragmented[datagram].fragment(length)
+            continue
         if proto is None or len(frame) < at + (20 if proto == "tcp" else 8):
             continue
         sport, dport = struct.unpack_from("!HH", frame, at)
@@ -108,7 +118,10 @@ def ip_traffic(
         else:
             total = struct.unpack_from("!H", frame, 16)[0]
             payload = total - ihl - (frame[at + 12] >> 4) * 4
-        (out[flow].tx if frame[6:12] == mac else out[flow].rx).count(payload, length)
+        totals = out[flow].tx if frame[6:12] == mac else out[flow].rx
+        totals.count(payload, length)
+        if frag & 0x2000:  # more fragments follow
+            fragmented[datagram] = totals
     return out
 
 

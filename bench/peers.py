@@ -10,12 +10,13 @@ says how, and the two run apart (their own ports), so they never hear each other
 from __future__ import annotations
 
 import importlib.util
+import subprocess
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import metadata
 
-from bench.paper_lab import SDFR_PORT
+from bench.paper_lab import ROOT, SDFR_PORT
 from bench.paper_measure import Flow
 
 #: SDfR's own traffic: its beacons, announcements and replies, all on one UDP port.
@@ -34,14 +35,35 @@ class Peer:
     imports: str  # the module its node imports
     knob: str = "its defaults"
     args: tuple[str, ...] = ()
+    python: str | None = None  # its node's interpreter, in the checkout (else this one)
+    setup: str | None = None  # the script that makes that interpreter (idempotent)
+
+    def interpreter(self) -> str:
+        return str(ROOT / self.python) if self.python else sys.executable
 
     def missing(self) -> str | None:
         """Why its node cannot run here, or None."""
-        if importlib.util.find_spec(self.imports) is None:
-            return f"{self.label}: {self.dist} is not installed (pip install -e '.[dev]')"
+        if self.python is None:
+            if importlib.util.find_spec(self.imports) is None:
+                return f"{self.label}: {self.dist} is not installed (pip install -e '.[dev]')"
+            return None
+        probe = [self.interpreter(), "-c", f"import {self.imports}"]
+        try:
+            subprocess.run(probe, capture_output=True, check=True, timeout=60)
+        except (OSError, subprocess.SubprocessError):
+            return f"{self.label}: {self.python} cannot import {self.imports} (bash {self.setup})"
         return None
 
+    def prepare(self) -> None:
+        """Make its interpreter if it has a setup script and cannot run yet."""
+        if self.setup is not None and self.missing() is not None:
+            subprocess.run(["bash", self.setup], cwd=ROOT, check=True, stdin=subprocess.DEVNULL)
+
     def version(self) -> str:
+        if self.python is not None:
+            ask = f"from importlib.metadata import version; print(version({self.dist!r}))"
+            res = subprocess.run([self.interpreter(), "-c", ask], capture_output=True, text=True)
+            return res.stdout.strip() or "?"
         try:
             return metadata.version(self.dist)
         except metadata.PackageNotFoundError:
@@ -50,9 +72,16 @@ class Peer:
     def argv(self, robot: str, ip: str, events: str, *common: str) -> list[str]:
         """Its node's command line for `robot` (`common`: the load's options, the same for
         every system)."""
-        return [sys.executable, "-m", self.module, "--robot", robot, "--ip", ip,
+        return [self.interpreter(), "-m", self.module, "--robot", robot, "--ip", ip,
                 "--events", events, *common, *self.args]  # fmt: skip
 
+
+#: IPv4 fragments after the first (a fragment offset that is not 0).
+LATER_FRAGMENTS = "(ip[6:2] & 0x1fff != 0)"
+
+#: The ROS 2 tier's interpreter (rclpy and Fast DDS from PyPI wheels) and what makes it.
+ROS2_PYTHON = ".venv/ros2/bin/python"
+ROS2_SETUP = "scripts/ros2-setup.sh"
 
 PEERS: dict[str, Peer] = {
     p.name: p
@@ -66,6 +95,16 @@ PEERS: dict[str, Peer] = {
              (("udp", 7456), ("tcp", 7457)), "eclipse-zenoh", "zenoh",
              knob="transport/link/tx/lease = 2000 ms (keep-alive every 500 ms)",
              args=("--lease-ms", "2000", "--scout-port", "7456", "--listen-port", "7457")),
+        # Domain d: discovery multicast 7400 + 250 d (+1: user multicast), a participant's
+        # own unicast + 10 and + 11 (one participant a robot: participant id 0).
+        Peer("dds", "ROS 2 / Fast DDS", "bench.dds_node",
+             (("udp", 7400), ("udp", 7401), ("udp", 7410), ("udp", 7411)), "ros_fastdds",
+             "rclpy", knob="its defaults (participant lease 20 s, announced every 3 s)",
+             python=ROS2_PYTHON, setup=ROS2_SETUP),
+        Peer("dds-lease3s", "ROS 2 / Fast DDS, lease 3 s", "bench.dds_node",
+             (("udp", 7650), ("udp", 7651), ("udp", 7660), ("udp", 7661)), "ros_fastdds",
+             "rclpy", knob="participant leaseDuration 3 s, announced every 1 s (XML profile)",
+             args=("--lease-s", "3", "--domain", "1"), python=ROS2_PYTHON, setup=ROS2_SETUP),
     )
 }  # fmt: skip
 #: What the side-by-side runs unless told otherwise.
@@ -79,6 +118,7 @@ def chosen(names: Sequence[str]) -> list[Peer]:
         peer = PEERS.get(name)
         if peer is None:
             raise ValueError(f"no peer {name!r}: the side-by-side knows {', '.join(PEERS)}")
+        peer.prepare()
         why = peer.missing()
         if why is not None:
             raise ValueError(why)
@@ -87,5 +127,6 @@ def chosen(names: Sequence[str]) -> list[Peer]:
 
 
 def capture_filter(flows: Sequence[Flow]) -> str:
-    """A pcap filter for these flows."""
-    return " or ".join(f"{proto} port {port}" for proto, port in flows)
+    """A pcap filter for these flows, and every later IP fragment (a fragment after the first
+    has no UDP header to match a port: `paper_measure.ip_traffic` ties it to its datagram)."""
+    return " or ".join([*(f"{proto} port {port}" for proto, port in flows), LATER_FRAGMENTS])

@@ -70,6 +70,10 @@ class Totals:
         self.payload_bytes += payload
         self.frame_bytes += frame
 
+    def fragment(self, frame: int) -> None:
+        """A later IP fragment of a datagram counted already: only its `frame` bytes."""
+        self.frame_bytes += frame
+
     def to_json(self) -> dict[str, int]:
         return {
             "datagrams": self.datagrams,

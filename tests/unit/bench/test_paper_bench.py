@@ -29,6 +29,7 @@ from bench.paper_measure import (
     udp_traffic,
     usage,
 )
+from bench.peers import LATER_FRAGMENTS, capture_filter
 from bench.zc_node import TYPE, instance, owner
 
 MINE = "02:00:00:00:00:01"
@@ -100,6 +101,34 @@ def test_ip_traffic_counts_tcp_segments_and_udp_datagrams_apart(tmp_path: Path) 
     assert (tcp.tx.datagrams, tcp.tx.payload_bytes, tcp.tx.frame_bytes) == (1, 100, 166)
     assert (tcp.rx.datagrams, tcp.rx.payload_bytes) == (2, 30)
     assert (udp.tx.datagrams, udp.tx.payload_bytes, udp.rx.datagrams) == (1, 20, 0)
+
+
+def fragments(src_mac: str, ident: int, dport: int, payload: bytes) -> list[bytes]:
+    """One UDP datagram to `dport`, IP-fragmented into frames of 1500 bytes of IP at most."""
+    eth = bytes.fromhex(("01005e7f0001" + src_mac.replace(":", "")) + "0800")
+    udp = struct.pack("!HHHH", 40000, dport, 8 + len(payload), 0) + payload
+    out = []
+    for at in range(0, len(udp), 1480):
+        piece = udp[at : at + 1480]
+        flags = (0x2000 if at + 1480 < len(udp) else 0) | at // 8
+        ip = struct.pack(
+            "!BBHHHBBH4s4s", 0x45, 0, 20 + len(piece), ident, flags, 1, 17, 0,
+            b"\n\x01\x00\x01", b"\xef\xff\x00\x01",
+        )  # fmt: skip
+        out.append(eth + ip + piece)
+    return out
+
+
+def test_a_fragmented_datagram_counts_once_with_all_its_frames(tmp_path: Path) -> None:
+    # 3000 bytes to UDP 7400 in three frames; the later two carry no UDP header (their bytes
+    # even read as port 7400), and a stray later fragment of another datagram counts nowhere.
+    sent = fragments(MINE, 7, 7400, (b"\x1c\xe8" * 1500))
+    stray = fragments(MINE, 8, 7400, b"s" * 2000)[1]
+    assert len(sent) == 3 and capture_filter([("udp", 7400)]).endswith(LATER_FRAGMENTS)
+    p = pcap(tmp_path / "r1.pcap", [(10.0 + i, f) for i, f in enumerate([*sent, stray])])
+    tx = ip_traffic(p, MINE, [("udp", 7400)], (9.0, 20.0))[("udp", 7400)].tx
+    assert (tx.datagrams, tx.payload_bytes) == (1, 3000)
+    assert tx.frame_bytes == sum(len(f) for f in sent)
 
 
 def test_mdns_messages_tells_queries_from_responses(tmp_path: Path) -> None:
@@ -295,7 +324,7 @@ def test_the_side_by_side_table_has_a_column_and_a_ratio_per_system() -> None:
 
 
 def test_a_peer_unknown_or_not_installed_is_refused_by_name() -> None:
-    from bench.peers import PEERS, Peer, capture_filter, chosen
+    from bench.peers import PEERS, Peer, chosen
 
     assert [p.name for p in chosen(["zenoh", "zeroconf"])] == ["zenoh", "zeroconf"]
     with pytest.raises(ValueError, match="no peer 'avahi': the side-by-side knows zeroconf, "):
@@ -303,7 +332,9 @@ def test_a_peer_unknown_or_not_installed_is_refused_by_name() -> None:
     ghost = Peer("ghost", "Ghost", "bench.ghost", (("udp", 1),), "ghost-dist", "no_such_module")
     assert ghost.missing() == "Ghost: ghost-dist is not installed (pip install -e '.[dev]')"
     assert ghost.version() == "?"
-    assert capture_filter(PEERS["zenoh"].flows) == "udp port 7446 or tcp port 7447"
+    assert capture_filter(PEERS["zenoh"].flows) == (
+        f"udp port 7446 or tcp port 7447 or {LATER_FRAGMENTS}"
+    )
     # Two Zenoh fleets in one lab must not hear each other: their ports differ.
     assert not set(PEERS["zenoh"].flows) & set(PEERS["zenoh-lease2s"].flows)
 
