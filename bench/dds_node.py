@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import faulthandler
 import json
 import os
 import sys
@@ -109,6 +110,7 @@ class Node(PeerNode):
         self.pub: Any
         self.msg_type: Any
         self.spinner: threading.Thread
+        self.executor: Any
 
     # -- what it publishes --------------------------------------------------------------------
 
@@ -118,12 +120,14 @@ class Node(PeerNode):
             self.pub.publish(self.msg_type(data=json.dumps(body, separators=(",", ":"))))
 
     async def register(self, index: int, sid: str) -> Any:
-        self.attrs[sid] = attributes(self.robot, index)
+        with self.lock:
+            self.attrs[sid] = attributes(self.robot, index)
         self.send()
         return sid
 
     async def unregister(self, handle: Any) -> None:
-        self.attrs.pop(handle, None)
+        with self.lock:
+            self.attrs.pop(handle, None)
         self.send()
 
     async def leave(self) -> None:
@@ -175,8 +179,21 @@ class Node(PeerNode):
             # (eProsima/Fast-DDS#3822): say it again.
             self.send()
 
-    def writers_left(self) -> set[bytes]:
-        return {bytes(i.endpoint_gid) for i in self.node.get_publishers_info_by_topic(TOPIC)}
+    async def writers_left(self) -> set[bytes]:
+        """The writers the ROS graph shows on the topic, asked in rclpy's own thread (the
+        graph is not asked from two threads at once)."""
+        answer: asyncio.Future[set[bytes]] = self.loop.create_future()
+
+        def ask() -> None:
+            try:
+                infos = self.node.get_publishers_info_by_topic(TOPIC)
+                got = {bytes(i.endpoint_gid) for i in infos}
+                self.loop.call_soon_threadsafe(answer.set_result, got)
+            except Exception as exc:  # (handed over to the loop, whatever it is)
+                self.loop.call_soon_threadsafe(answer.set_exception, exc)
+
+        self.executor.create_task(ask)
+        return await answer
 
     async def recheck(self) -> None:
         """Drop the robots whose writer the graph no longer shows (asking again while it
@@ -184,7 +201,7 @@ class Node(PeerNode):
         started = time.monotonic()
         for at in RECHECK_S:
             await asyncio.sleep(max(0.0, started + at - time.monotonic()))
-            left = await self.loop.run_in_executor(None, self.writers_left)
+            left = await self.writers_left()
             for robot, gid in list(self.writer_of.items()):
                 if gid not in left:
                     self.drop(robot)
@@ -219,7 +236,7 @@ class Node(PeerNode):
             event_callbacks=SubscriptionEventCallbacks(
                 matched=self.on_reader_matched, liveliness=self.on_liveliness),
         )  # fmt: skip
-        executor = SingleThreadedExecutor()
+        self.executor = executor = SingleThreadedExecutor()
         executor.add_node(self.node)
 
         def spin() -> None:
@@ -243,6 +260,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--lease-s must be more than 0, not {args.lease_s}")
     if not 0 <= args.domain <= 101:
         p.error(f"--domain must be 0-101 (ROS 2's domain ids over UDP), not {args.domain}")
+    faulthandler.enable()  # (a crash in rclpy or Fast DDS leaves its stacks on stderr)
     # (The lease's profile beside the event log: the run folder says how DDS ran.)
     os.environ.update(environment(args.domain, args.lease_s, f"{args.events}.fastdds.xml"))
     with open(args.events, "w", buffering=1) as events:

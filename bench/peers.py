@@ -10,6 +10,7 @@ says how, and the two run apart (their own ports), so they never hear each other
 from __future__ import annotations
 
 import importlib.util
+import shutil
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -36,13 +37,18 @@ class Peer:
     knob: str = "its defaults"
     args: tuple[str, ...] = ()
     python: str | None = None  # its node's interpreter, in the checkout (else this one)
-    setup: str | None = None  # the script that makes that interpreter (idempotent)
+    setup: str | None = None  # the script that makes it runnable here (idempotent)
+    programs: tuple[str, ...] = ()  # the programs its node runs (on PATH)
+    version_argv: tuple[str, ...] = ()  # a command whose output ends with its version
 
     def interpreter(self) -> str:
         return str(ROOT / self.python) if self.python else sys.executable
 
     def missing(self) -> str | None:
         """Why its node cannot run here, or None."""
+        absent = [p for p in self.programs if shutil.which(p) is None]
+        if absent:
+            return f"{self.label}: {', '.join(absent)} not installed (bash {self.setup})"
         if self.python is None:
             if importlib.util.find_spec(self.imports) is None:
                 return f"{self.label}: {self.dist} is not installed (pip install -e '.[dev]')"
@@ -60,6 +66,12 @@ class Peer:
             subprocess.run(["bash", self.setup], cwd=ROOT, check=True, stdin=subprocess.DEVNULL)
 
     def version(self) -> str:
+        if self.version_argv:
+            try:
+                said = subprocess.run(self.version_argv, capture_output=True, text=True).stdout
+            except OSError:
+                return "?"
+            return said.split()[-1] if said.split() else "?"
         if self.python is not None:
             ask = f"from importlib.metadata import version; print(version({self.dist!r}))"
             res = subprocess.run([self.interpreter(), "-c", ask], capture_output=True, text=True)
@@ -97,6 +109,12 @@ PEERS: dict[str, Peer] = {
              args=("--lease-ms", "2000", "--scout-port", "7456", "--listen-port", "7457")),
         # Domain d: discovery multicast 7400 + 250 d (+1: user multicast), a participant's
         # own unicast + 10 and + 11 (one participant a robot: participant id 0).
+        # Avahi's port is python-zeroconf's: the two never run in one lab (`chosen`).
+        Peer("avahi", "Avahi", "bench.avahi_node", (("udp", 5353),), "avahi-daemon",
+             "bench.avahi_node", knob="its defaults (records' TTL: PTR and TXT 75 min)",
+             setup="scripts/avahi-setup.sh",
+             programs=("avahi-daemon", "avahi-publish", "avahi-browse", "dbus-daemon"),
+             version_argv=("avahi-daemon", "--version")),
         Peer("dds", "ROS 2 / Fast DDS", "bench.dds_node",
              (("udp", 7400), ("udp", 7401), ("udp", 7410), ("udp", 7411)), "ros_fastdds",
              "rclpy", knob="its defaults (participant lease 20 s, announced every 3 s)",
@@ -113,11 +131,18 @@ DEFAULT = ("zeroconf", "zenoh")
 
 def chosen(names: Sequence[str]) -> list[Peer]:
     """The peers named, each known and runnable here; else ValueError saying which is not."""
-    out = []
+    out: list[Peer] = []
+    taken: dict[Flow, str] = dict.fromkeys(SDFR_FLOWS, "sdfr")
     for name in names:
         peer = PEERS.get(name)
         if peer is None:
             raise ValueError(f"no peer {name!r}: the side-by-side knows {', '.join(PEERS)}")
+        shared = sorted(f for f in peer.flows if f in taken)
+        if shared:
+            ports = ", ".join(f"{proto} {port}" for proto, port in shared)
+            raise ValueError(f"{name} and {taken[shared[0]]} cannot run in one lab: both use "
+                             f"{ports} (their traffic could not be told apart)")  # fmt: skip
+        taken.update(dict.fromkeys(peer.flows, name))
         peer.prepare()
         why = peer.missing()
         if why is not None:

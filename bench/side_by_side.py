@@ -3,15 +3,16 @@ one run.
 
 Every robot runs them all at once: sdfrd at the product's defaults (10 s beacon) with its
 services published through the REST API, and a node of each peer (`bench.peers`: python-zeroconf
-for mDNS / DNS-SD, Zenoh in peer mode, each with its defaults or a labelled liveness knob) that
-registers the same services and lists the others'.  All churn the same way (`bench.paper_load`'s
-reading of the paper: 70 publishers, one unpublish every 0-5 s, each publisher publishing again
-10 s later), and each robot has a watcher per system that notes when a service of another robot
-is listed and when it is not any more, told through each system's own notifications (SDfR:
-`GET /events` on the robot; a peer: its node's callbacks, a service counting once its
-attributes are known).  All act at the same instants, and the same
-pcaps hold every system's traffic (each peer's ports: `bench.peers`), so every figure is
-measured like for like.  `--loss` puts the same loss (in %) on every pair of robots.
+and Avahi for mDNS / DNS-SD, Zenoh in peer mode, ROS 2's own discovery on Fast DDS, each with its
+defaults or a labelled liveness knob) that registers the same services and lists the others'.
+All churn the same way (`bench.paper_load`'s reading of the paper: 70 publishers, one unpublish
+every 0-5 s, each publisher publishing again 10 s later), and each robot has a watcher per
+system that notes when a service of another robot is listed and when it is not any more, told
+through each system's own notifications (SDfR: `GET /events` on the robot; a peer: its node's
+callbacks, a service counting once its attributes are known).  All act at the same instants,
+and the same pcaps hold every system's traffic (each peer's ports: `bench.peers`; two systems
+on one port, python-zeroconf and Avahi, never run in one lab), so every figure is measured like
+for like.  `--loss` puts the same loss (in %) on every pair of robots.
 
 The steps, timed for every system from the moment they were asked:
 
@@ -27,7 +28,7 @@ The steps, timed for every system from the moment they were asked:
 5. a silent death (SIGKILL) of the one before: until no robot lists its services, waiting at
    most `KILL_CAP` s (python-zeroconf keeps an unannounced service until its PTR record
    expires, 75 minutes by default; to Zenoh a killed process is no silent departure: the
-   kernel closes its TCP sessions);
+   kernel closes its TCP sessions; DDS waits out the participant's lease, 20 s by default);
 6. a 40 s partition of the robots left into two halves, during which r1 publishes a service
    and a robot of the other half unpublishes one: whether and when each half stopped listing
    the other, and after the merge until every list is right again.
