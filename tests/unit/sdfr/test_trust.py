@@ -25,6 +25,7 @@ from sdfr.protocol import (
     updates,
 )
 from sdfr.protocol.auth import Keyring, Mode
+from sdfr.protocol.core import BYEBYE_COPIES
 from sdfr.records.model import Service, service_digest
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, services
 from sdfr.wire import Alive, Byebye, Discovery, Origin, Update
@@ -580,3 +581,31 @@ def test_a_challenge_lost_at_the_old_address_does_not_hold_back_the_new_one() ->
     took = net.wait_until(lambda: r1.core.peers["r2"].address == r2.addr, timeout=BEACON)
     assert took < r1.core.config.ping_timeout / 2
     assert net.sees("r1", "r2")
+
+
+def test_a_byebye_goes_twice_so_one_lost_copy_does_not_leave_a_peer_waiting_three_beacons() -> None:
+    """A stop sends its Byebye `BYEBYE_COPIES` times back to back: the first copy lost on
+    the r2-r1 link, r1 drops r2 at once on the second; r3, hearing both, treats the second
+    as the copy it is (no challenge to the departed robot, nothing refused)."""
+    net = SimNet(seed=114)
+    names = fleet(net, 3, n_services=5)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    net.run_for(2 * BEACON)
+    byes = {"r1": 0}
+
+    def lose_first_to_r1(src: str, dst: str, data: bytes) -> bool:
+        if src == "r2" and dst == "r1" and kind_of(data) == "byebye":
+            byes["r1"] += 1
+            return byes["r1"] > 1
+        return True
+
+    net.filter = lose_first_to_r1
+    r3 = net.nodes["r3"]
+    rejects, before = sum(r3.core.counters.rejects.values()), len(r3.sent)
+    net.stop("r2")
+    net.run_for(0.1)
+    assert byes["r1"] == BYEBYE_COPIES
+    assert not net.sees("r1", "r2") and not net.sees("r3", "r2")
+    assert sum(r3.core.counters.rejects.values()) == rejects  # the copy: no "after-byebye"
+    to_r2 = [s for s in r3.sent[before:] if s[-1] == net.nodes["r2"].addr]
+    assert not to_r2  # and no challenge to the departed robot
