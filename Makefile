@@ -80,12 +80,16 @@ bench: $(STAMP)
 bench-footprint: $(STAMP)
 	$(call run-bench,footprint --profile > /dev/null)
 
-# SDfR beside what robotics teams use instead (bench/peers.py: python-zeroconf, Zenoh), every
-# system at once on one lab, 70 services a robot under the paper's churn: 6 and 20 robots, clean
-# and at 10 % loss on every pair (~45 min; root). runs/bench-peers.json, a Markdown table and
-# JSON per run and the bytes-per-robot figure in runs/side-by-side-*/.
+# SDfR beside what robotics teams use instead (bench/peers.py: python-zeroconf, Avahi, Zenoh,
+# ROS 2 on Fast DDS at its default and a 3 s lease), every system at once on one lab, 70
+# services a robot under the paper's churn, 6 robots, clean and at 10 % loss on every pair
+# (~40 min; root; installs Avahi and the ROS 2 wheels when missing). Avahi and python-zeroconf
+# share UDP 5353, so they run in two labs, Zenoh and DDS in both. runs/bench-peers.json and
+# runs/bench-peers-avahi.json; a Markdown table and JSON per run in runs/side-by-side-*/.
+# (20 robots: `--robots 6,20`; every system at once overloads 2 cores.)
 bench-peers: $(STAMP)
-	$(call run-bench,side_by_side --robots 6$(,)20 --loss 0$(,)10 --out runs/bench-peers.json)
+	$(call run-bench,side_by_side --robots 6 --loss 0$(,)10 --peers zeroconf$(,)zenoh$(,)dds$(,)dds-lease3s --out runs/bench-peers.json)
+	$(call run-bench,side_by_side --robots 6 --loss 0$(,)10 --peers avahi$(,)zenoh$(,)dds$(,)dds-lease3s --out runs/bench-peers-avahi.json)
 
 # 10, 50 and 100 robots with real daemons in one lab (scenario scale-100), 2 minutes of stay
 # each: set-up, convergence, CPU and PSS per daemon, bytes per robot on the air, and how they
