@@ -107,14 +107,14 @@ PEERS: dict[str, Peer] = {
              (("udp", 7456), ("tcp", 7457)), "eclipse-zenoh", "zenoh",
              knob="transport/link/tx/lease = 2000 ms (keep-alive every 500 ms)",
              args=("--lease-ms", "2000", "--scout-port", "7456", "--listen-port", "7457")),
-        # Domain d: discovery multicast 7400 + 250 d (+1: user multicast), a participant's
-        # own unicast + 10 and + 11 (one participant a robot: participant id 0).
         # Avahi's port is python-zeroconf's: the two never run in one lab (`chosen`).
         Peer("avahi", "Avahi", "bench.avahi_node", (("udp", 5353),), "avahi-daemon",
              "bench.avahi_node", knob="its defaults (records' TTL: PTR and TXT 75 min)",
              setup="scripts/avahi-setup.sh",
              programs=("avahi-daemon", "avahi-publish", "avahi-browse", "dbus-daemon"),
              version_argv=("avahi-daemon", "--version")),
+        # Domain d: discovery multicast 7400 + 250 d (+1: user multicast), a participant's
+        # own unicast + 10 and + 11 (one participant a robot: participant id 0).
         Peer("dds", "ROS 2 / Fast DDS", "bench.dds_node",
              (("udp", 7400), ("udp", 7401), ("udp", 7410), ("udp", 7411)), "ros_fastdds",
              "rclpy", knob="its defaults (participant lease 20 s, announced every 3 s)",
