@@ -42,6 +42,8 @@ JITTER_MS = 10
 LOSS = 10
 #: Lag of polling the daemons' APIs from the test under software emulation.
 SLACK_S = 1.5
+#: Beacons whose RTT readings the indicator test judges (their median).
+JUDGED = 10
 NAMES = ("r1", "r2", "r3")
 
 
@@ -137,13 +139,16 @@ def test_the_indicator_tells_the_delay_and_the_loss(fleet: Fleet) -> None:
         series.append((view2["r1"]["rtt_ms"], view3["r1"]["rtt_ms"], view2["r3"]["rtt_ms"],
                        view3["r2"]["rtt_ms"]))  # fmt: skip
     print("rtt (ms) each beacon, r2->r1 r3->r1 (shaped), r2->r3 r3->r2 (clean):", series)
-    shaped = [float(view2["r1"]["rtt_ms"]), float(view3["r1"]["rtt_ms"])]  # type: ignore[arg-type]
-    clean = [float(view2["r3"]["rtt_ms"]), float(view3["r2"]["rtt_ms"])]  # type: ignore[arg-type]
     rates = [float(view2["r1"]["indicator"]), float(view3["r1"]["indicator"])]  # type: ignore[arg-type]
-    print(f"rtt of r1 (shaped): {shaped} ms; of r2/r3 (clean): {clean} ms; success {rates}")
-    # A round trip to r1 crosses its link twice: 2 x 50 ms more, +- the jitter.
-    extra = statistics.mean(shaped) - statistics.mean(clean)
-    assert 2 * DELAY_MS - 2 * JITTER_MS <= extra <= 2 * DELAY_MS + 4 * JITTER_MS, (shaped, clean)
+    # A round trip to r1 crosses its link twice: 2 x 50 ms more, +- the jitter.  Judged on the
+    # median over the last JUDGED beacons, not on one reading: the emulated CPU stalls now and
+    # then (with a second VM beside it), and one stalled round trip lifts a smoothed RTT by
+    # 100+ ms for a few beacons (seen: a clean pair's 36 -> 177 ms in the last reading).
+    extras = [(a + b) / 2 - (c + d) / 2 for a, b, c, d in series[-JUDGED:]]  # type: ignore[operator]
+    extra = statistics.median(extras)
+    print(f"extra rtt of r1 (shaped) over the clean pairs, last {JUDGED} beacons: {extras} ms;"
+          f" median {extra:.1f} ms; success {rates}")  # fmt: skip
+    assert 2 * DELAY_MS - 2 * JITTER_MS <= extra <= 2 * DELAY_MS + 4 * JITTER_MS, extras
     # 10 % loss each way on r1's link: about 0.81 of round trips come back.  A window of 20
     # pings is a wide measure: no lost round trip in both windows happens 0.2 % of the time.
     assert all(0.5 <= r <= 1.0 for r in rates) and statistics.mean(rates) < 0.975, rates
