@@ -310,16 +310,27 @@ class Run:
         evaluate = EVALUATORS[type(step.condition)]
         within = self.seconds(step.within) if step.within is not None else 0.0
         during = self.seconds(step.during) if step.during is not None else None
+        steady = self.seconds(step.steady) if step.steady is not None else 0.0
         res.deadline = within if step.within is not None else None
         res.during = during
         since = self.event
         period = min(0.1, max(0.02, within / 20))
         first = True
         late: list[str] = []  # what was wrong at the deadline
+        stretch: float | None = None  # since when it has held without a break (steady)
         while True:
             problems = evaluate(ctx, step.condition)
             now = self.clock.monotonic()
-            if not problems and (first or now - since <= within):
+            if steady and not problems and (stretch is not None or first or now - since <= within):
+                stretch = now if stretch is None else stretch
+                if now - stretch < steady:
+                    first = False
+                    self.clock.sleep(period)
+                    continue
+                res.took = stretch - since
+                break
+            stretch = None
+            if not problems and not steady and (first or now - since <= within):
                 # At a first look after the deadline (earlier checks took that long) it
                 # holds, but since when is not known: say so.
                 res.took = now - since
@@ -360,7 +371,8 @@ class Run:
             res.took = None  # it had to hold from the first look: there is no "when"
             self.say(f"ok    {res.description}: held {during or 0:g} s")
         else:
-            kept = f", then held {during:g} s" if during else ""
+            kept = f", held steady {steady:g} s" if steady else ""
+            kept += f", then held {during:g} s" if during else ""
             note = f" ({res.detail})" if res.detail else ""
             self.say(
                 f"ok    {res.description}: {res.took or 0.0:.2f} s (deadline {within:.2f} s)"

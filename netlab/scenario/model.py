@@ -286,6 +286,7 @@ class Scenario:
                 most += seconds(span, self.beacon)
             elif isinstance(step, Check):
                 held = seconds(step.during, self.beacon) if step.during is not None else 0.0
+                held += seconds(step.steady, self.beacon) if step.steady is not None else 0.0
                 least += held
                 most += held + (seconds(step.within, self.beacon) if step.within else 0.0)
         return least, most

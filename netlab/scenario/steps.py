@@ -304,6 +304,8 @@ class Sleep(Step):
 @dataclass(frozen=True)
 class Check(Step):
     """Wait up to `within` for `condition` to hold, and (`during`) for it to keep holding.
+    With `steady`, it counts as holding only once it has held that long without a break (a
+    break starts the count again); the stretch must begin within `within`.
 
     A failed check is recorded and the run goes on.
     """
@@ -311,6 +313,7 @@ class Check(Step):
     condition: Condition
     within: Span | None = None
     during: Span | None = None
+    steady: Span | None = None
     kind: ClassVar[str] = "check"
     #: A failure ends the run.
     fatal: ClassVar[bool] = False
@@ -321,7 +324,8 @@ class Check(Step):
     def _validate(self, selectors: Selectors) -> None:
         if not isinstance(self.condition, Condition):
             raise Bad(f"condition: expected a Condition (Lists(), ...), got {self.condition!r}")
-        for name, value in (("within", self.within), ("during", self.during)):
+        spans = (("within", self.within), ("during", self.during), ("steady", self.steady))
+        for name, value in spans:
             if value is not None:
                 try:
                     Duration.of(value)
@@ -330,8 +334,10 @@ class Check(Step):
         timed = self.within is not None or self.during is not None
         if self.condition.polled and not timed:
             raise Bad(f"a {self.condition.kind} check needs within (a deadline) or during")
-        if not self.condition.polled and timed:
-            raise Bad(f"a {self.condition.kind} check is judged once: no within or during")
+        if not self.condition.polled and (timed or self.steady is not None):
+            raise Bad(f"a {self.condition.kind} check is judged once: no within, during or steady")
+        if self.steady is not None and self.within is None:
+            raise Bad("steady needs within: the deadline for the steady stretch to begin")
         self.condition._validate(selectors)
 
 

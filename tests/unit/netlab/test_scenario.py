@@ -328,6 +328,8 @@ a = ["r1", "r2"]
         ('check = "lists"\nwithin = 1\ngroups = ["a", "r1"]', r"groups: robots in more than"),
         ('check = "smiles"\nwithin = 1', r"step 1 \(check\): check: unknown condition 'smiles'"),
         ('check = "agreement"\nwithin = 1', r"agreement check is judged once"),
+        ('check = "lists"\nduring = 1\nsteady = 2', r"step 1 \(check\): steady needs within"),
+        ('check = "lists"\nwithin = 1\nsteady = "soon"', r"step 1 \(check\): steady: cannot"),
         ('check = "agreement"', r"step 1 \(check\): over: no action step before it"),
         ('partition = ["a"]\n[[step]]\ncheck = "updates"\nafter = "x"', r"step 2.*after: no"),
         ('quality = ["r1", "r2"]\nloss = 120', r"step 1 \(quality\): loss: must be 0-100"),

@@ -5,6 +5,7 @@ lab in virtual time, in an instant, with deadlines counted in that time."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -239,3 +240,62 @@ def test_a_start_step_waits_as_long_as_it_says(
     result = run(sc, run_dir=tmp_path, backend=replace(backend, clock=clock), say=quiet([]))
     assert result.status == "passed", result.error
     assert waited == [300.0, 60.0]
+
+
+class _Flapping(set[tuple[str, str]]):
+    """r1 misses r2 while `gone(t)` says so, t counted on `clock` from its creation."""
+
+    def __init__(self, clock: VirtualClock, gone: Callable[[float], bool]) -> None:
+        super().__init__()
+        self.clock, self.gone, self.t0 = clock, gone, clock.monotonic()
+
+    def __iter__(self) -> Iterator[tuple[str, str]]:
+        return iter([("r1", "r2")] if self.gone(self.clock.monotonic() - self.t0) else [])
+
+
+@pytest.mark.parametrize(
+    ("gone", "ok", "took"),
+    [
+        # Holds at 2 s, breaks at 3 s, holds for good from 5 s: steady 4 s is reached at 9 s.
+        (lambda t: t < 2 or 3 <= t < 5, True, 5.0),
+        # Never holds 4 s on end: it breaks every 3 s.
+        (lambda t: t % 3 < 0.5, False, None),
+        # Holds for good only from 12 s, after the 10 s deadline: too late to begin.
+        (lambda t: t < 12, False, None),
+    ],
+)
+def test_a_steady_check_counts_only_an_unbroken_stretch_begun_within_its_deadline(
+    fake: tuple[Backend, list[FakeLab]],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    gone: Callable[[float], bool],
+    ok: bool,
+    took: float | None,
+) -> None:
+    backend, _ = fake
+    clock = _virtual(backend, monkeypatch)
+
+    def make(spec: object) -> FakeLab:
+        lab = backend.make_lab(spec)  # type: ignore[arg-type]
+        lab.blind = _Flapping(clock, gone)
+        return lab
+
+    sc = Scenario(
+        "settle",
+        robots=3,
+        beacon=PRODUCT_BEACON,
+        capture="none",
+        steps=[Start(), Wait(Lists(), within="10 s", steady="4 s")],
+    )
+    lines: list[str] = []
+    result = run(
+        sc, run_dir=tmp_path, backend=replace(backend, make_lab=make, clock=clock), say=quiet(lines)
+    )
+    (check,) = result.checks
+    assert check.ok is ok, "\n".join(lines)
+    if took is None:
+        assert check.took is None and "r1" in check.detail and result.status == "failed"
+        assert result.duration < 20  # failed at its deadline, not later
+    else:
+        assert check.took == pytest.approx(took, abs=0.5)
+        assert any("held steady 4 s" in line for line in lines), lines
