@@ -99,6 +99,11 @@ class LabMedium:
         """A radio lab's medium's counters (frames, copies, CPU seconds), every second."""
         return self.workdir / "air" / "stats.json"
 
+    @property
+    def radio_macs(self) -> dict[str, str]:
+        """A radio lab's robots' interface addresses: who sent which frame on the air."""
+        return {r: airmedium.perm_address(a) for r, a in self._radio_addrs.items()}
+
     def _apply_medium(self) -> None:
         if self.air != "wired" and self.air_medium != "netlab":
             return  # (hwsim's own medium: every radio hears every other)

@@ -91,7 +91,7 @@ def write_report(
     }
     if differences:  # the paper's figures go beside a run's only under the paper's conditions
         del report["traffic"]["paper_5_min_kB"]
-    air = analysis.air_use(recs, _radio_owners(recs, infos))
+    air = analysis.air_use(recs, _radio_owners(recs, infos, meta))
     if air:
         report["air"] = air
     if conn:
@@ -195,10 +195,14 @@ def _captures(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[
     return {k: out[k] for k in analysis.natural_order(list(out))}
 
 
-def _radio_owners(recs: Sequence[Record], infos: Mapping[str, CaptureInfo]) -> dict[str, str]:
-    """A robot capture's interface MAC -> its robot: who sent what on the air."""
+def _radio_owners(
+    recs: Sequence[Record], infos: Mapping[str, CaptureInfo], meta: Mapping[str, Any]
+) -> dict[str, str]:
+    """A robot's interface MAC -> the robot: who sent what on the air.  From the run's
+    meta (the lab's radios), else from the robots' own captures."""
     owners = analysis.capture_owners(recs)
-    return {
+    named = {mac: robot for robot, mac in (meta.get("radios") or {}).items()}
+    return named | {
         info.mac: owners.get(label, label)
         for label, info in infos.items()
         if info.mac and info.role != "medium"

@@ -452,6 +452,7 @@ class Run:
             "runtime": self.sc.runtime,
             "medium": self.sc.medium,
             "air_medium": self.sc.air_medium if self.sc.medium == "radio" else None,
+            "radios": getattr(self.lab, "radio_macs", {}) if self.sc.medium == "radio" else {},
             "beacon_interval_s": self.sc.beacon,
             "quick": self.quick,
             "status": result.status,

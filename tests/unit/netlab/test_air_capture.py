@@ -17,6 +17,7 @@ from scapy.layers.l2 import LLC, SNAP
 from scapy.packet import Packet, Raw
 from scapy.utils import wrpcap
 
+from netlab import airmedium, hwsim
 from netlab.analysis import AIR_KINDS, air_use
 from netlab.capture import CaptureInfo, sidecar_path
 from netlab.pcap import EAPOL, SDFR, WIFI_CTRL, WIFI_DATA, WIFI_MGMT, read_pcap
@@ -131,6 +132,18 @@ def test_a_radio_run_s_report_has_its_air_and_a_wired_run_s_none(tmp_path: Path)
     assert report["air"]["frames"] == 6  # type: ignore[index]
     assert report["captures"]["air"]["role"] == "medium"  # type: ignore[index]
     assert "air" not in write_report(wired, records=[], meta={"robots": 2})
+
+
+def test_a_run_that_captured_the_air_only_names_its_transmitters_from_the_lab_s_radios(
+    tmp_path: Path,
+) -> None:
+    """Without the robots' own captures (capture = "medium"), the run's meta says whose
+    radio each address is (`Lab.radio_macs`): the report names robots, not addresses."""
+    write_air(tmp_path)
+    radios = {"r1": R1, "r2": R2}
+    report = write_report(tmp_path, records=None, meta={"robots": 2, "radios": radios})
+    assert list(report["air"]["by_transmitter"]) == ["", "r1", "r2"]  # type: ignore[index]
+    assert airmedium.perm_address(hwsim.hwsim_address(R2)) == R2  # what radio_macs undoes
 
 
 def test_the_air_read_from_802_11_headers_is_what_scapy_dissects(tmp_path: Path) -> None:
