@@ -18,7 +18,7 @@ import pytest
 
 from netlab.lab import Lab
 from tests.support.fleets import unique_lab_name
-from tests.support.peers import ROOT, Nodes, events, listed
+from tests.support.peers import ROOT, Nodes, listed
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
@@ -64,16 +64,7 @@ def test_avahi_peers_list_each_others_services_a_new_one_a_leave_and_keep_a_dead
         ])  # fmt: skip
         procs, log = nodes.procs, nodes.log
         try:
-            poll("every peer lists every other's services",
-                 lambda: nodes.everyone_lists(ROBOTS), 60.0)  # fmt: skip
-
-            os.kill(procs["r1"].pid, signal.SIGUSR1)  # one more service on r1
-            poll("r1 publishes its new service", lambda: nodes.published_extra("r1"), 5.0)
-            poll("r1's new service is listed", lambda: nodes.everyone_lists(ROBOTS), 15.0)
-
-            os.kill(procs["r3"].pid, signal.SIGTERM)  # a graceful leave: goodbyes
-            assert procs["r3"].wait(20) == 0
-            assert events(log["r3"])[-1]["op"] == "leave"
+            nodes.meet_add_and_leave(60.0, 15.0, 20.0)  # r3's leave: mDNS goodbyes
             poll("r3's services are gone", lambda: nodes.everyone_lists(("r1", "r2")), 10.0)
 
             # kill -9: the node's daemon and publishers die with it (no goodbye), and r1 goes

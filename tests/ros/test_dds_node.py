@@ -15,7 +15,7 @@ import pytest
 
 from netlab.lab import Lab
 from tests.support.fleets import unique_lab_name
-from tests.support.peers import Nodes, events, listed
+from tests.support.peers import Nodes, listed
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
@@ -37,16 +37,7 @@ def test_dds_peers_list_each_others_services_a_new_one_a_leave_and_a_silent_deat
         ])  # fmt: skip
         procs, log = nodes.procs, nodes.log
         try:
-            poll("every peer lists every other's services",
-                 lambda: nodes.everyone_lists(ROBOTS), 30.0)  # fmt: skip
-
-            os.kill(procs["r1"].pid, signal.SIGUSR1)  # one more service on r1
-            poll("r1 publishes its new service", lambda: nodes.published_extra("r1"), 5.0)
-            poll("r1's new service is listed", lambda: nodes.everyone_lists(ROBOTS), 5.0)
-
-            os.kill(procs["r3"].pid, signal.SIGTERM)  # a graceful leave: the node destroyed
-            assert procs["r3"].wait(10) == 0
-            assert events(log["r3"])[-1]["op"] == "leave"
+            nodes.meet_add_and_leave(30.0, 5.0, 10.0)  # r3's leave: the node destroyed
             gone = poll("r3's services are gone", lambda: nodes.everyone_lists(("r1", "r2")),
                         LEASE_S / 2)  # fmt: skip
 

@@ -6,6 +6,8 @@ services."""
 from __future__ import annotations
 
 import math
+import os
+import signal
 import subprocess
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -14,6 +16,7 @@ from typing import Any
 from bench.listed import own_services, replay
 from bench.paper_measure import read_events
 from netlab.lab import Lab
+from tests.support.waiting import poll
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -71,6 +74,21 @@ class Nodes:
     def published_extra(self, robot: str) -> bool:
         """Whether `robot` has published the service SIGUSR1 asked for (``p1001x...``)."""
         return any(sid.startswith("p1001x") for _, sid in published(self.log[robot]))
+
+    def meet_add_and_leave(self, meet: float, add: float, leave: float) -> None:
+        """The script every peer node follows first: each robot lists every other's services
+        (within `meet` s); SIGUSR1 gives r1 one more service, listed by all within `add` s;
+        SIGTERM makes r3 leave gracefully (its node exits 0 within `leave` s, its log's last
+        event a leave).  What the leave looks like to the others is the test's to judge."""
+        robots = list(self.log)
+        poll("every peer lists every other's services", lambda: self.everyone_lists(robots), meet)
+        os.kill(self.procs["r1"].pid, signal.SIGUSR1)  # one more service on r1
+        # The signal is handled in r1's own time: wait for its log to say it published.
+        poll("r1 publishes its new service", lambda: self.published_extra("r1"), 5.0)
+        poll("r1's new service is listed", lambda: self.everyone_lists(robots), add)
+        os.kill(self.procs["r3"].pid, signal.SIGTERM)
+        assert self.procs["r3"].wait(leave) == 0
+        assert events(self.log["r3"])[-1]["op"] == "leave"
 
     def close(self) -> None:
         """Kill what still runs; print each node's stderr (the test's output on a failure)."""
