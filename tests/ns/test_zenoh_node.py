@@ -16,7 +16,7 @@ import pytest
 
 from netlab.lab import Lab
 from tests.support.fleets import unique_lab_name
-from tests.support.peers import Nodes, listed
+from tests.support.peers import Nodes
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
@@ -36,24 +36,14 @@ def test_zenoh_peers_list_each_others_services_a_new_one_a_leave_and_a_silent_de
             sys.executable, "-m", "bench.zenoh_node", "--robot", r, "--ip", ip,
             "--publishers", str(PUBLISHERS), "--events", str(log), "--lease-ms", str(LEASE_MS),
         ])  # fmt: skip
-        procs, log = nodes.procs, nodes.log
+        procs = nodes.procs
         try:
             nodes.meet_add_and_leave(20.0, 5.0, 10.0)  # r3's leave: its tokens undeclared
             poll("r3's services are gone", lambda: nodes.everyone_lists(("r1", "r2")), 5.0)
 
-            # A silent departure: r2's link cut.  Only the lease tells (no FIN comes).
-            lab.partition([["r1"], ["r2"]])
-            within = 6 * LEASE_MS / 1e3
-            took = poll("r2's services are gone on r1", lambda: not listed(log["r1"]), within)
-            assert took >= LEASE_MS / 1e3 / 2, f"gone in {took:.2f} s: before the lease could tell"
-            lab.merge()
-            back = poll("after the merge r1 lists r2's again",
-                        lambda: nodes.everyone_lists(("r1", "r2")), 15.0)  # fmt: skip
-            # kill -9 is not silent to Zenoh: the kernel closes the dead process's TCP sessions.
-            os.kill(procs["r2"].pid, signal.SIGKILL)
-            procs["r2"].wait(5)
-            killed = poll("r2's services are gone on r1 after its kill -9",
-                          lambda: not listed(log["r1"]), within)  # fmt: skip
+            # A cut link is silent (no FIN comes): only the lease tells.  kill -9 is not silent
+            # to Zenoh: the kernel closes the dead process's TCP sessions.
+            took, back, killed = nodes.cut_merge_kill(LEASE_MS / 1e3, 15.0)
             print(
                 f"\nzenoh (lease {LEASE_MS} ms): a cut link noticed in {took:.2f} s, listed "
                 f"again {back:.2f} s after the merge; a kill -9 noticed in {killed:.2f} s"

@@ -15,7 +15,7 @@ import pytest
 
 from netlab.lab import Lab
 from tests.support.fleets import unique_lab_name
-from tests.support.peers import Nodes, listed
+from tests.support.peers import Nodes
 from tests.support.waiting import poll
 
 pytestmark = pytest.mark.root
@@ -35,24 +35,14 @@ def test_dds_peers_list_each_others_services_a_new_one_a_leave_and_a_silent_deat
             str(ros2_env), "-m", "bench.dds_node", "--robot", r, "--ip", ip,
             "--publishers", str(PUBLISHERS), "--events", str(log), "--lease-s", str(LEASE_S),
         ])  # fmt: skip
-        procs, log = nodes.procs, nodes.log
+        procs = nodes.procs
         try:
             nodes.meet_add_and_leave(30.0, 5.0, 10.0)  # r3's leave: the node destroyed
             gone = poll("r3's services are gone", lambda: nodes.everyone_lists(("r1", "r2")),
                         LEASE_S / 2)  # fmt: skip
 
-            # A silent departure: r2's link cut.  Only the lease tells.
-            lab.partition([["r1"], ["r2"]])
-            within = 6 * LEASE_S
-            took = poll("r2's services are gone on r1", lambda: not listed(log["r1"]), within)
-            assert took >= LEASE_S / 2, f"gone in {took:.2f} s: before the lease could tell"
-            lab.merge()
-            back = poll("after the merge r1 lists r2's again",
-                        lambda: nodes.everyone_lists(("r1", "r2")), 20.0)  # fmt: skip
-            os.kill(procs["r2"].pid, signal.SIGKILL)  # silent to DDS too (UDP only)
-            procs["r2"].wait(5)
-            killed = poll("r2's services are gone on r1 after its kill -9",
-                          lambda: not listed(log["r1"]), within)  # fmt: skip
+            # A cut link is silent: only the lease tells; kill -9 too (DDS is UDP only).
+            took, back, killed = nodes.cut_merge_kill(LEASE_S, 20.0)
             assert killed >= LEASE_S / 2, f"gone in {killed:.2f} s: before the lease could tell"
             print(
                 f"\ndds (lease {LEASE_S} s): a leave noticed in {gone:.2f} s, a cut link in "

@@ -90,6 +90,25 @@ class Nodes:
         assert self.procs["r3"].wait(leave) == 0
         assert events(self.log["r3"])[-1]["op"] == "leave"
 
+    def cut_merge_kill(self, lease: float, back: float) -> tuple[float, float, float]:
+        """What only a lease can tell, on a system that has one: r2's link cut (no goodbye
+        comes), so r1 drops r2's services within 6 leases, not before half of one; the merge,
+        r1 listing them again within `back` s; then r2's node killed (-9) and r1 dropping its
+        services within 6 leases.  The seconds each took."""
+        lab, log = self.lab, self.log
+        lab.partition([["r1"], ["r2"]])
+        within = 6 * lease
+        took = poll("r2's services are gone on r1", lambda: not listed(log["r1"]), within)
+        assert took >= lease / 2, f"gone in {took:.2f} s: before the lease could tell"
+        lab.merge()
+        again = poll("after the merge r1 lists r2's again",
+                     lambda: self.everyone_lists(("r1", "r2")), back)  # fmt: skip
+        os.kill(self.procs["r2"].pid, signal.SIGKILL)
+        self.procs["r2"].wait(5)
+        killed = poll("r2's services are gone on r1 after its kill -9",
+                      lambda: not listed(log["r1"]), within)  # fmt: skip
+        return took, again, killed
+
     def close(self) -> None:
         """Kill what still runs; print each node's stderr (the test's output on a failure)."""
         for proc in self.procs.values():
