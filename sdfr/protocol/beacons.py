@@ -4,6 +4,7 @@ pings and their schedule, round trips and the indicator (the window of settled p
 from __future__ import annotations
 
 import math
+from typing import TypeVar
 
 from sdfr import wire
 from sdfr.protocol import sending
@@ -11,6 +12,8 @@ from sdfr.protocol.config import CHALLENGE_PAD, MAX_PINGS, Addr, answers_beacon
 from sdfr.protocol.peers import Peer, _GroupPing, _Ping
 from sdfr.protocol.state import CoreState
 from sdfr.wire import WANT_ALL, WIRE_COMPACT, Alive, Discovery
+
+P = TypeVar("P", _Ping, _GroupPing)
 
 #: A peer's smoothed RTT is stored (and listed) again once it moved from the stored one by more
 #: than this share of it and this many seconds: a true figure without a write per round trip.
@@ -92,6 +95,22 @@ def settle_ping(core: CoreState, peer: Peer, *, ok: bool) -> None:
         peer.pings.popleft()
     if peer.indicator != before:
         core._dirty.add(peer.robot_id)
+
+
+def keep_late(table: dict[int, P], seq: int, ping: P) -> None:
+    """A ping settled lost at its timeout, kept in `table` (`CoreState._late`...) for a late
+    answer; the oldest goes beyond MAX_PINGS."""
+    table[seq] = ping
+    while len(table) > MAX_PINGS:
+        del table[next(iter(table))]
+
+
+def drop_late(core: CoreState, now: float, window: float) -> None:
+    """Forget the late pings whose proof window has ended: an answer now would prove
+    nothing that lists a robot."""
+    for table in (core._late, core._late_groups):
+        for seq in [s for s, p in table.items() if now >= p.sent + window]:
+            del table[seq]
 
 
 def round_trip(core: CoreState, peer: Peer, sample: float, src: Addr, now: float) -> None:

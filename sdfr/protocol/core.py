@@ -161,9 +161,10 @@ class Core(CoreState):
                 return  # a robot we never proved leaves: nothing to believe, nothing to ask
             if known.byebye_boot == origin.boot_id:
                 return  # a copy of a Byebye heard already (BYEBYE_COPIES): nothing new
-        proof = trust.take_proof(self, msg, origin, src, now)
+        alive = trust.take_proof(self, msg, origin, src, now)
+        proof = alive is not None
         ping = isinstance(msg, Discovery) and msg.seq is not None
-        peer, believed = trust.gate(self, origin, src, now, seal, proof, ping=ping)
+        peer, believed = trust.gate(self, origin, src, now, seal, alive, ping=ping)
         if isinstance(msg, Discovery):
             self._on_discovery(msg, peer if believed else None, src, now, answer_ping=True)
             if peer is not None and not believed and isinstance(msg.want, str):

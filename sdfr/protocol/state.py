@@ -131,6 +131,11 @@ class CoreState:
         self._repair_asked = -math.inf
         #: Beacons sent as pings, by sequence number.
         self._group_pings: dict[int, _GroupPing] = {}
+        #: Pings and beacon pings past their timeout (settled lost), kept until their proof
+        #: window ends: a late answer (a busy robot) still proves its robot alive when the
+        #: ping went (`trust.take_proof`).  At most MAX_PINGS of each (`beacons.keep_late`).
+        self._late: dict[int, _Ping] = {}
+        self._late_groups: dict[int, _GroupPing] = {}
         #: Address -> the wire version of the peer there (what unicasts to it may be).
         self._wire_at: dict[Addr, int] = {}
 

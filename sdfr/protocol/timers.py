@@ -29,9 +29,12 @@ def handle_timer(core: CoreState, now: float) -> None:
         core._next_beacon = now + beacons.beacon_period(core)
     if now >= core._next_prune:
         prune(core, now)
+    window = cfg.proof_window(core._turns)
+    beacons.drop_late(core, now, window)
     expired = [seq for seq, p in core._pings.items() if now >= p.sent + cfg.ping_timeout]
     for seq in expired:
         ping = core._pings.pop(seq)
+        beacons.keep_late(core._late, seq, ping)
         peer = core.peers.get(ping.robot_id)
         if peer is not None and ping.addr == peer.address and peer.proven:
             # (A challenge to another address, or to a robot not proven yet, says nothing
@@ -39,13 +42,14 @@ def handle_timer(core: CoreState, now: float) -> None:
             beacons.settle_ping(core, peer, ok=False)
     late = [s for s, g in core._group_pings.items() if now >= g.sent + cfg.ping_timeout]
     for seq in late:
-        for robot_id, addr in core._group_pings.pop(seq).targets.items():
+        group = core._group_pings.pop(seq)
+        beacons.keep_late(core._late_groups, seq, group)
+        for robot_id, addr in group.targets.items():
             peer = core.peers.get(robot_id)
             if peer is not None and addr == peer.address:
                 beacons.settle_ping(core, peer, ok=False)
     if core.conflict is not None and now >= core.conflict.last_seen + cfg.dead_after:
         core.conflict = None  # no second daemon has answered for a miss window
-    window = cfg.proof_window(core._turns)
     for peer in list(core.peers.values()):
         if not peer.known and now >= peer.last_heard + cfg.dead_after:
             trust.forget(core, peer)

@@ -20,17 +20,18 @@ def gate(
     src: Addr,
     now: float,
     seal: Sealed | None,
-    proof: bool,
+    proof: float | None,
     *,
     ping: bool = False,
 ) -> tuple[Peer | None, bool]:
     """The peer a datagram speaks for (None: refused), and whether what it says may be
     believed now.
 
-    Only a peer's answer to a ping of ours (`proof`: its nonce makes it fresh) changes
-    what we believe of it: its boot, version, digest and address.  Anything else from a
-    robot not proven in this run, of another boot or from another address is not believed
-    but answered with a challenge; its Update parts may be held until the answer comes.
+    Only a peer's answer to a ping of ours (`proof`: when it proves the peer alive,
+    `take_proof`; its nonce makes it fresh) changes what we believe of it: its boot,
+    version, digest and address.  Anything else from a robot not proven in this run, of
+    another boot or from another address is not believed but answered with a challenge;
+    its Update parts may be held until the answer comes.
     A sealed datagram whose counter was seen already in the proven boot is a replay.
     """
     peer = core.peers.get(origin.robot_id)
@@ -49,8 +50,8 @@ def gate(
             digest=origin.digest,
         )
         core._unproven += 1
-    if proof:
-        prove(core, peer, origin, src, now)
+    if proof is not None:
+        prove(core, peer, origin, src, now, proof)
         if seal is not None:
             if not peer.window.fresh(origin.boot_id, seal.counter):
                 # A boot id used again (its state lost), whose new counters are below
@@ -124,12 +125,14 @@ def forget(core: CoreState, peer: Peer) -> None:
     if not peer.known:
         core._unproven -= 1
     core._dirty.discard(peer.robot_id)
-    for seq in [s for s, p in core._pings.items() if p.robot_id == peer.robot_id]:
-        del core._pings[seq]
+    for pings in (core._pings, core._late):
+        for seq in [s for s, p in pings.items() if p.robot_id == peer.robot_id]:
+            del pings[seq]
 
 
-def prove(core: CoreState, peer: Peer, origin: Origin, src: Addr, now: float) -> None:
-    """The peer answered a ping of ours from `src`: believe what it says of itself now."""
+def prove(core: CoreState, peer: Peer, origin: Origin, src: Addr, now: float, alive: float) -> None:
+    """The peer answered a ping of ours from `src`: believe what it says of itself now.  The
+    answer proves it alive at `alive` (now, or when the ping went for a late answer)."""
     if (
         origin.boot_id != peer.boot_id
         or origin.version < peer.version
@@ -142,7 +145,7 @@ def prove(core: CoreState, peer: Peer, origin: Origin, src: Addr, now: float) ->
         peer.version, peer.digest = origin.version, origin.digest
         core._dirty.add(peer.robot_id)
     peer.byebye_boot = None
-    peer.answered_at = now
+    peer.answered_at = max(peer.answered_at, alive)
     # Answered: the next claim (a change right behind this one) may be asked about soon,
     # not a ping timeout later; CHALLENGE_GAP bounds what forged claims cost it.
     challenge_soon(core, peer, now)
@@ -236,39 +239,60 @@ def doubt(
     challenges.challenge(core, peer, src, now, pad=pad)
 
 
-def take_proof(core: CoreState, msg: wire.Message, origin: Origin, src: Addr, now: float) -> bool:
-    """Whether `msg` answers a ping of ours (its nonce) from where the ping went; the ping
-    is settled (used up) only then, so a forgery cannot take it away."""
+def take_proof(
+    core: CoreState, msg: wire.Message, origin: Origin, src: Addr, now: float
+) -> float | None:
+    """When `msg` proves its robot alive, if it answers a ping of ours (its nonce) from
+    where the ping went: now, or, for a late answer (after the ping timeout, within the
+    proof window: a busy robot), when the ping was sent; None: it is no proof.  The ping is
+    settled (used up) only then, so a forgery cannot take it away.  A late answer says
+    nothing of the link (its ping was settled lost, `timers`): no round-trip time."""
     if not isinstance(msg, Response) or msg.seq is None:
-        return False
-    ping = core._pings.get(msg.seq)
+        return None
+    late = msg.seq not in core._pings and msg.seq not in core._group_pings
+    window = core.config.proof_window(core._turns)
+    pings = core._late if late else core._pings
+    ping = pings.get(msg.seq)
     if ping is not None:
         if ping.robot_id != origin.robot_id or ping.addr != src:
-            return False
-        del core._pings[msg.seq]
+            return None
+        if late and now >= ping.sent + window:
+            return None  # (its window is over: it lists no one; `timers` forgets it)
+        del pings[msg.seq]
         peer = core.peers.get(origin.robot_id)
         if peer is not None:
-            if ping.addr == peer.address or not peer.proven:
+            if not late and (ping.addr == peer.address or not peer.proven):
                 beacons.round_trip(core, peer, now - ping.sent, src, now)
             else:
                 core._answered[src] = now
-        return newest_answer(peer, ping.sent)
-    group = core._group_pings.get(msg.seq)
-    group = core._group_pings.get(msg.seq)
+        return proven_at(peer, ping.sent, now, late)
+    group = (core._late_groups if late else core._group_pings).get(msg.seq)
     if group is None or origin.robot_id in group.heard:
-        return False
+        return None
+    if late and now >= group.sent + window:
+        return None
     peer = core.peers.get(origin.robot_id)
     expected = group.targets.get(origin.robot_id)
     if expected is not None:
         if expected != src:
-            return False
+            return None
         del group.targets[origin.robot_id]
     elif peer is None or peer.address != src:
-        return False  # (a robot we do not know joins by its search and our challenge)
+        return None  # (a robot we do not know joins by its search and our challenge)
     group.heard.add(origin.robot_id)
     if peer is not None:
-        beacons.round_trip(core, peer, now - group.sent, src, now)
-    return newest_answer(peer, group.sent)
+        if late:
+            core._answered[src] = now
+        else:
+            beacons.round_trip(core, peer, now - group.sent, src, now)
+    return proven_at(peer, group.sent, now, late)
+
+
+def proven_at(peer: Peer | None, asked: float, now: float, late: bool) -> float | None:
+    """`take_proof`'s answer for an answer to a ping sent at `asked`."""
+    if not newest_answer(peer, asked):
+        return None
+    return asked if late else now
 
 
 def newest_answer(peer: Peer | None, asked: float) -> bool:

@@ -56,6 +56,9 @@ class SimNet:
         self.nodes: dict[str, Node] = {}
         self.blocked: set[frozenset[str]] = set()
         self.pair_loss: dict[tuple[str, str], float] = {}
+        #: Seconds added to every datagram from one robot to another (a robot too busy to
+        #: answer in time, as seen by that peer).
+        self.pair_delay: dict[tuple[str, str], float] = {}
         self._queue: list[tuple[float, int, Callable[[], None]]] = []
         self._seq = itertools.count()
         self.delivered = 0
@@ -284,7 +287,11 @@ class SimNet:
             if self.rng.random() < loss:
                 self.dropped += 1
                 continue
-            t = self.now + self.rng.uniform(*self.delay)
+            t = (
+                self.now
+                + self.rng.uniform(*self.delay)
+                + self.pair_delay.get((src.name, dst.name), 0)
+            )
 
             def deliver(dst: Node = dst, data: bytes = data, addr: Addr = src.addr) -> None:
                 if not dst.up or self.nodes.get(dst.name) is not dst:
@@ -343,14 +350,10 @@ def services(robot: str, n: int = 100, tag: str = "") -> list[Service]:
 
 
 def fleet(net: SimNet, n: int, n_services: int = 100, **cfg: Any) -> list[str]:
-    """Robots r1..rn on `net`, each with `n_services` services, at the short test beacon."""
+    """Robots r1..rn on `net`, each with `n_services` services, at the short test beacon
+    (pinging twice a beacon, unless `cfg` says otherwise)."""
     names = [f"r{i}" for i in range(1, n + 1)]
+    defaults: dict[str, Any] = {"beacon_interval": BEACON, "ping_interval": BEACON / 2}
     for name in names:
-        net.add(
-            name,
-            services=services(name, n_services),
-            beacon_interval=BEACON,
-            ping_interval=BEACON / 2,
-            **cfg,
-        )
+        net.add(name, services=services(name, n_services), **{**defaults, **cfg})
     return names

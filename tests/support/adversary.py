@@ -9,7 +9,9 @@ state, it derives who answered whose ping, and checks each robot's *listed* view
 
 - I1  a robot is listed reachable by R only if it answered a ping of R (a Response datagram its
       own core sent, carrying a seq R's current run sent in a ping or beacon, reaching R from
-      the address that ping went to within R's ping timeout) within the last miss window;
+      the address that ping went to) within the last miss window: counted from its arrival,
+      or, for an answer after R's ping timeout (a busy robot, or one the outsider held
+      back), from when R sent the ping;
 - I2  a listed robot's boot is that of its run that last answered R (the answer to R's latest
       ping), and its services one of the sets that run was given (or none yet);
 - I3  with a fleet key, a datagram the outsider re-sends (a replay, a relay, a copy from a
@@ -86,6 +88,8 @@ class Proof:
     t_ping: float
     prover: Life
     src: Addr
+    #: When it proves the prover alive: its arrival, or for a late answer, the ping's time.
+    alive: float
 
 
 @dataclass(eq=False)
@@ -235,15 +239,17 @@ class World:
         if not isinstance(msg, wire.Response) or msg.seq is None:
             return
         timeout = node.core.config.ping_timeout
+        window = node.core.config.dead_after
         for cap in self.by_bytes.get(data, ()):
             if cap.life.name == life.name:
                 continue
             for t_ping, pdst in life.pings.get(msg.seq, ()):
-                if t_ping > cap.t or now - t_ping > timeout + EPS:
+                if t_ping > cap.t or now - t_ping > window + EPS:
                     continue
                 if src != (cap.src if pdst is None else pdst):
                     continue  # not from where the ping went
-                proof = Proof(now, t_ping, cap.life, src)
+                late = now - t_ping > timeout + EPS
+                proof = Proof(now, t_ping, cap.life, src, t_ping if late else now)
                 name = cap.life.name
                 life.last_proof[name] = proof
                 best = life.latest_ping_proof.get(name)
@@ -342,8 +348,8 @@ class World:
             for r in core.reachable():
                 proof = life.last_proof.get(r)
                 judged = "I1" in self.checks or ("I1p" in self.checks and proof is not None)
-                if judged and (proof is None or proof.t_recv + window < now - EPS):
-                    last = "never" if proof is None else f"last at t={proof.t_recv:.3f}"
+                if judged and (proof is None or proof.alive + window < now - EPS):
+                    last = "never" if proof is None else f"last alive at t={proof.alive:.3f}"
                     self._fail(
                         "I1",
                         f"{name} lists {r} reachable, but {r} answered a ping of {life} "

@@ -89,6 +89,38 @@ def test_silent_death_unreachable_within_3_beacons_indicator_falls() -> None:
     assert len(peer.services) == 100
 
 
+@pytest.mark.parametrize(
+    "ping_interval", [BEACON / 2, BEACON], ids=["unicast-pings", "beacon-pings"]
+)
+def test_a_busy_robot_that_answers_late_stays_listed_and_its_indicator_says_so(
+    ping_interval: float,
+) -> None:
+    """r2 answers r1 a second and a half late (a busy CPU: past the ping timeout, within the
+    proof window): r1 keeps it listed throughout, its indicator counts the late answers as
+    lost, and once r2 dies r1 still drops it within the miss limit."""
+    net = SimNet(seed=21)
+    names = fleet(net, 3, n_services=2, ping_interval=ping_interval)
+    net.wait_until(lambda: net.all_see_all(names), timeout=2.0)
+    core = net.nodes["r1"].core
+    assert core.config.ping_timeout < 1.5 < core.config.proof_window()
+    net.pair_delay[("r2", "r1")] = 1.5
+    t0 = net.now
+    flaps = []
+    while net.now < t0 + 20 * BEACON:
+        net.run_for(0.05)
+        if not net.sees("r1", "r2"):
+            flaps.append(round(net.now - t0, 2))
+    assert flaps == []
+    peer = core.peers["r2"]
+    assert peer.indicator == 0.0  # every answer came after the ping timeout
+    assert net.sees("r1", "r3") and core.peers["r3"].indicator == 1.0
+    killed = net.now
+    net.kill("r2")
+    # Its last answer (to a ping sent before it died) keeps it at most a proof window.
+    took = net.wait_until(lambda: not net.sees("r1", "r2"), 3 * BEACON + 0.05)
+    assert net.now - killed <= core.config.proof_window() + 0.05, took
+
+
 def test_indicator_keeps_the_pings_lost_in_an_outage_and_recovers() -> None:
     net = SimNet(seed=18)
     # A window the pings before and during the outage do not fill: the new ones then add to it.
