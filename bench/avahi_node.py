@@ -23,10 +23,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
+import ctypes  # noqa: F401  (die_with_parent's: imported before any fork, not in the child)
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -34,10 +33,13 @@ from pathlib import Path
 from typing import Any
 
 from bench.peer_node import PeerNode, arguments, attributes
+from sdfr.host.procfs import die_with_parent
 
 TYPE = "_sdfrbench._tcp"
 PORT_BASE = 9000
 READY_S = 30.0  # how long the daemon may take to answer on its bus
+#: What a robot needs installed (scripts/avahi-setup.sh).
+PROGRAMS = ("avahi-daemon", "avahi-publish", "avahi-browse", "dbus-daemon")
 
 DBUS_CONF = """<!DOCTYPE busconfig PUBLIC "-//freedesktop//DTD D-Bus Bus Configuration 1.0//EN"
  "http://www.freedesktop.org/standards/dbus/1.0/busconfig.dtd">
@@ -106,13 +108,6 @@ def txt(attrs: dict[str, str]) -> list[str]:
     return [f"{k}={v}" for k, v in attrs.items()]
 
 
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_node() -> None:  # (in the child, before exec)
-    ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-
-
 class Node(PeerNode):
     def __init__(self, args: Any, events: Any) -> None:
         super().__init__(args, events)
@@ -123,13 +118,13 @@ class Node(PeerNode):
     def start(self, argv: list[str], log: str, **kw: Any) -> subprocess.Popen[bytes]:
         with open(self.home / log, "ab") as out:
             proc = subprocess.Popen(argv, env=self.env, stdin=subprocess.DEVNULL, stdout=out,
-                                    stderr=out, preexec_fn=_die_with_node, **kw)  # fmt: skip
+                                    stderr=out, preexec_fn=die_with_parent, **kw)  # fmt: skip
         self.procs.append(proc)
         return proc
 
     def set_up(self) -> None:
         """The robot's own bus and daemon, and their folders over the fixed paths."""
-        for need in ("avahi-daemon", "avahi-publish", "avahi-browse", "dbus-daemon"):
+        for need in PROGRAMS:
             if shutil.which(need) is None:
                 raise SystemExit(f"avahi node: no {need} here (bash scripts/avahi-setup.sh)")
         self.home.mkdir(parents=True, exist_ok=True)
@@ -171,7 +166,8 @@ class Node(PeerNode):
         self.procs.remove(proc)
 
     async def leave(self) -> None:
-        """Withdraw every service, then end the daemon (which says goodbye for what is left)."""
+        """Withdraw every service, one publisher at a time (the daemon says goodbye for each
+        and keeps running, as a robot's avahi-daemon would)."""
         t0 = time.perf_counter()
         for sid in list(self.mine):
             await self.unregister(self.mine.pop(sid))
@@ -180,7 +176,7 @@ class Node(PeerNode):
     async def watch(self) -> None:
         browse = await asyncio.create_subprocess_exec(
             "avahi-browse", "-r", "-p", "-k", TYPE, env=self.env, stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, preexec_fn=_die_with_node,
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, preexec_fn=die_with_parent,
         )  # fmt: skip
         assert browse.stdout is not None
         while line := await browse.stdout.readline():

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import metadata
 
+from bench.avahi_node import PROGRAMS as AVAHI_PROGRAMS
 from bench.paper_lab import ROOT, SDFR_PORT
 from bench.paper_measure import Flow
 
@@ -111,7 +112,7 @@ PEERS: dict[str, Peer] = {
         Peer("avahi", "Avahi", "bench.avahi_node", (("udp", 5353),), "avahi-daemon",
              "bench.avahi_node", knob="its defaults (records' TTL: PTR and TXT 75 min)",
              setup="scripts/avahi-setup.sh",
-             programs=("avahi-daemon", "avahi-publish", "avahi-browse", "dbus-daemon"),
+             programs=AVAHI_PROGRAMS,
              version_argv=("avahi-daemon", "--version")),
         # Domain d: discovery multicast 7400 + 250 d (+1: user multicast), a participant's
         # own unicast + 10 and + 11 (one participant a robot: participant id 0).

@@ -77,7 +77,6 @@ STALL_AFTER = 15.0
 START_GRACE = 30.0
 #: A layer's exit status for "cannot start; a restart will not help" (its message says why).
 EXIT_CANNOT_START = 2
-_PR_SET_PDEATHSIG = 1
 LOCK_NAME = "sdfrd.lock"
 
 #: A layer's entry point: its flags and its Host in, its exit status out.
@@ -90,15 +89,6 @@ def _set_comm(name: str) -> None:
     never needs otherwise)."""
     with contextlib.suppress(OSError):
         Path(f"/proc/self/task/{threading.get_native_id()}/comm").write_text(name)
-
-
-def _die_with_parent() -> None:
-    """prctl(PR_SET_PDEATHSIG, SIGKILL): a forked layer ends with its supervisor. (`main`
-    imports ctypes before the fork, so that the layers share it.)"""
-    import ctypes
-
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
 def preload() -> dict[str, Main]:
@@ -305,7 +295,7 @@ class Supervisor:
         the supervisor's loop: the caller exits with it)."""
         code = 1
         try:
-            _die_with_parent()
+            procfs.die_with_parent()
             _set_comm(procfs.LAYER_COMM[layer.name])
             signal.set_wakeup_fd(-1)
             for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGCHLD):
@@ -566,7 +556,7 @@ def main(argv: list[str] | None = None) -> int:
         # no secret configured: the radio is left alone.
         wifi.setup(cfg)
         if cfg.layers == "processes":
-            importlib.import_module("ctypes")  # (_die_with_parent's, before the fork: shared)
+            importlib.import_module("ctypes")  # (die_with_parent's, before the fork: shared)
         mains = preload()
     except SdfrError as exc:
         print(f"sdfrd: {exc}", file=sys.stderr)

@@ -1,7 +1,9 @@
-"""Reading /proc: one parser of /proc/PID/stat for the daemon, netlab, the benches and tests."""
+"""Reading /proc: one parser of /proc/PID/stat for the daemon, netlab, the benches and tests;
+and the one prctl that ties a child's life to its parent's."""
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -10,6 +12,18 @@ PROC = Path("/proc")
 #: (at most 15 bytes): how a layer is told apart from its supervisor, whose command line it
 #: shares.
 LAYER_COMM = {"api": "sdfrd-api", "discovery": "sdfrd-discovery"}
+
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """prctl(PR_SET_PDEATHSIG, SIGKILL): this process ends when its parent does (in a forked
+    child: sdfrd's layers, a bench node's daemons).  ctypes is imported here, on first use: a
+    caller that forks imports it before, so that its children share it."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
 def stat_fields(pid: int, proc: Path = PROC) -> list[str] | None:
