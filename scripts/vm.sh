@@ -23,8 +23,9 @@
 #
 # A failed test's lab folders (every robot's sdfrd.log and state, the pcaps) are copied out
 # of the guest as the test fails (tests/support/vmkeep.py), into a new folder
-# sdfr-vm-TIER-logs.XXXXXX under SDFR_KEEP_LOGS that the guest may write; the failure and
-# this script's last lines say where. No test failed: the folder is removed.
+# sdfr-vm-TIER-logs.XXXXXX under SDFR_KEEP_LOGS that the guest may write, with vm-load.log
+# (the guest's load and busiest processes every 30 s); the failure and this script's last lines
+# say where. No test failed: the folder is removed.
 #
 # No leftovers: the VM runs in a process group of its own (timeout's), which is
 # killed on timeout, Ctrl-C or any exit; the results directory is removed.
@@ -136,6 +137,9 @@ cleanup() {
         kill "$tail_pid" 2>/dev/null || true
         wait "$tail_pid" 2>/dev/null || true
     fi
+    if [ -n "$(ls -A "$keep" 2>/dev/null)" ] && [ -s "$res/vm-load.log" ]; then
+        cp "$res/vm-load.log" "$keep/" 2>/dev/null || true
+    fi
     rm -rf "$res"
     if [ -n "$(ls -A "$keep" 2>/dev/null)" ]; then
         echo "$me: the failed tests' lab folders (daemon logs, state, pcaps) are kept" \
@@ -169,6 +173,13 @@ trap 'echo "$me: terminated, stopping the VM" >&2; exit 143' TERM
     printf '    cd %q # through the overlay\n' "$repo"
     echo 'fi'
     printf 'export SDFR_KEEP_LOGS=%q # a failed test copies its lab folders there\n' "$keep"
+    # What loads the guest's one CPU, every 30 s (kept beside a failed test's folders): a
+    # fleet's deadlines fail when the CPU cannot keep up, and this says whether it could:
+    # the CPU's busy and idle ticks so far, and the processes that used most of it (their
+    # CPU time so far). (`top` every 10 s cost the guest 5-13 % of its CPU; this, less.)
+    echo '( while :; do echo "== $(cut -d" " -f1 /proc/uptime)s up, load $(cut -d" " -f1-4 /proc/loadavg), $(head -n 1 /proc/stat), MemAvailable $(awk "/MemAvailable/ {print \$2}" /proc/meminfo) kB";'
+    echo '    ps -eo pid,times,args --sort=-times | head -n 9 | cut -c1-160; sleep 30; done ) >"$res/vm-load.log" 2>&1 &'
+    echo 'load_pid=$!'
     # The guest's /tmp is an overlay whose lower layer is the host's /tmp, live: pytest there
     # numbers its folder after the host's pytest-of-root/pytest-N and sweeps old ones, while the
     # host's runs make and delete theirs underneath (undefined for an overlay). The tests' folders
@@ -182,6 +193,7 @@ trap 'echo "$me: terminated, stopping the VM" >&2; exit 143' TERM
     printf '.venv/bin/python -m pytest -p no:cacheprovider -p no:hypothesispytest -p no:schemathesis -p no:anyio -p no:xdist --basetemp=/run/sdfr-vm/pytest --junitxml="$res/junit.xml" %s 2>&1 | tee "$res/pytest.log"\n' \
         "$(printf '%q ' "${pytest_args[@]}")"
     echo 'echo "${PIPESTATUS[0]}" >"$res/rc"'
+    echo 'kill "$load_pid" 2>/dev/null'
     echo 'echo "vm: pytest done after $(cut -d" " -f1 /proc/uptime)s of uptime"'
 } >"$res/inner.sh"
 
