@@ -5,8 +5,10 @@ from __future__ import annotations
 import pytest
 
 from sdfr import wire
-from sdfr.protocol import Core, CoreConfig, updates
+from sdfr.protocol import Core, CoreConfig, beacons, updates
+from sdfr.protocol.config import MAX_PINGS
 from sdfr.protocol.core import BYEBYE_COPIES
+from sdfr.protocol.peers import _Ping
 from sdfr.records.model import PeerRecord, Service
 from sdfr.testing.simnet import BEACON, SimNet, fleet, kind_of, sent, services
 from tests.support.wire_data import noisy_services
@@ -119,6 +121,13 @@ def test_a_busy_robot_that_answers_late_stays_listed_and_its_indicator_says_so(
     # Its last answer (to a ping sent before it died) keeps it at most a proof window.
     took = net.wait_until(lambda: not net.sees("r1", "r2"), 3 * BEACON + 0.05)
     assert net.now - killed <= core.config.proof_window() + 0.05, took
+
+
+def test_pings_kept_for_a_late_answer_are_bounded_and_the_oldest_go_first() -> None:
+    table: dict[int, _Ping] = {}
+    for seq in range(MAX_PINGS + 10):
+        beacons.keep_late(table, seq, _Ping("r2", float(seq), ("10.1.0.2", 1900)))
+    assert len(table) == MAX_PINGS and min(table) == 10
 
 
 def test_indicator_keeps_the_pings_lost_in_an_outage_and_recovers() -> None:
