@@ -1,0 +1,100 @@
+"""`make test-vms` shares the VM tiers' tests between two VMs (the Makefile's two lanes,
+each a `scripts/vm.sh` run): every test file of tests/netem and tests/radio runs in exactly
+one of them, each VM loads the modules its tests need, and a skipped tier's tests drop out of
+both. `SDFR_VM_PLAN=1` makes vm.sh say what its VM would run, without booting it."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+LANES = ("vm-netem-and-joins", "vm-radio-rest")
+MODULES = {"netem": "sch_netem", "radio": "mac80211_hwsim"}
+
+
+def lane_commands() -> list[list[str]]:
+    """The commands `make test-vms` runs, one per lane (make -n: nothing runs)."""
+    out = subprocess.run(
+        ["make", "-s", "-n", "--no-print-directory", *LANES],
+        cwd=ROOT, capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    commands = [shlex.split(line) for line in out.stdout.splitlines() if "scripts/vm.sh" in line]
+    assert len(commands) == len(LANES), out.stdout
+    return commands
+
+
+def plan(command: list[str], **env: str) -> str:
+    """What vm.sh says its VM would do (SDFR_VM_PLAN=1): its whole output."""
+    keep = {k: v for k, v in os.environ.items() if not k.startswith("SDFR_SKIP_")}
+    res = subprocess.run(
+        command, cwd=ROOT, capture_output=True, text=True,
+        env={**keep, "SDFR_VM_PLAN": "1", **env},
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    return res.stdout
+
+
+def files_run(pytest_args: list[str]) -> set[str]:
+    """The test files pytest would collect from these arguments (paths and --ignore=)."""
+    ignored = {a.split("=", 1)[1] for a in pytest_args if a.startswith("--ignore=")}
+    found: set[str] = set()
+    for a in pytest_args:
+        if not a.startswith("tests/"):
+            continue
+        path = ROOT / a
+        files = sorted(path.glob("test_*.py")) if path.is_dir() else [path]
+        found |= {str(f.relative_to(ROOT)) for f in files}
+    return {f for f in found if f not in ignored}
+
+
+def planned(output: str) -> tuple[str, list[str]]:
+    """(the modprobe line, pytest's arguments) from a plan's last line."""
+    line = output.strip().splitlines()[-1]
+    assert "would boot with" in line, output
+    modules = line.split("`")[1]
+    return modules, shlex.split(line.split(" and run pytest ", 1)[1])
+
+
+def test_the_two_vms_run_every_vm_test_once_with_the_modules_it_needs() -> None:
+    every = {
+        str(p.relative_to(ROOT))
+        for tier in MODULES
+        for p in (ROOT / "tests" / tier).glob("test_*.py")
+    }
+    seen: list[str] = []
+    for command in lane_commands():
+        modules, args = planned(plan(command))
+        files = files_run(args)
+        assert files, f"{command}: no test"
+        for f in files:
+            tier = f.split("/")[1]
+            assert MODULES[tier] in modules, f"{f} runs in a VM without {MODULES[tier]}"
+        seen += files
+    assert sorted(seen) == sorted(every), "each VM test file must run in exactly one VM"
+
+
+@pytest.mark.parametrize("tier", sorted(MODULES))
+def test_a_skipped_tier_drops_out_of_both_vms_and_says_so(tier: str) -> None:
+    var = f"SDFR_SKIP_{tier.upper()}"
+    for command in lane_commands():
+        out = plan(command, **{var: "1"})
+        if "would boot with" not in out:
+            continue  # a VM left with nothing to run does not boot
+        modules, args = planned(out)
+        assert MODULES[tier] not in modules
+        assert all(f.split("/")[1] != tier for f in files_run(args)), out
+    said = [plan(c, **{var: "1"}) for c in lane_commands()]
+    assert any(f"{var}=1" in s and "did not run" in s for s in said)
+
+
+def test_an_unknown_tier_is_refused_with_the_ones_there_are() -> None:
+    res = subprocess.run(
+        ["bash", "scripts/vm.sh", "netem+wifi"], cwd=ROOT, capture_output=True, text=True
+    )
+    assert res.returncode == 2 and "netem|radio|netem+radio" in res.stderr
+    assert "got netem+wifi" in res.stderr
