@@ -32,16 +32,20 @@ test-py310: $(STAMP)
 
 # Both VM tiers in two VMs at once: each VM emulates one CPU, so on 2 cores they run side by
 # side, once the host's tiers (whose deadlines assume the machine is theirs) are done. The
-# radio tier alone takes four times the netem tier, so the VMs share the tests: one runs the
-# netem tier and the radio joins, the other the rest of the radio tier, and both end at about
-# the same time. Each VM's output comes whole when it ends; either failing fails this.
-VM_SHARED := tests/radio/test_radio_join.py
+# radio tier alone takes five times the netem tier, so the VMs share the tests: one runs the
+# netem tier, the radio joins and the wired run of radio-range, the other the radio scenarios
+# over the air, and both end at about the same time. Each VM's output comes whole when it
+# ends; either failing fails this. (tests/unit/test_vm_lanes.py: each VM test runs once.)
+VM_SHARED_FILES := tests/radio/test_radio_join.py
+VM_SHARED_TESTS := \
+	tests/radio/test_radio_scenarios.py::test_the_same_range_scenario_on_the_wired_medium_in_the_same_vm
 test-vms: $(STAMP)
 	$(MAKE) --no-print-directory -j2 --output-sync=target vm-netem-and-joins vm-radio-rest
 vm-netem-and-joins: $(STAMP)
-	bash scripts/vm.sh netem+radio -v -s tests/netem $(VM_SHARED)
+	bash scripts/vm.sh netem+radio -v -s tests/netem $(VM_SHARED_FILES) $(VM_SHARED_TESTS)
 vm-radio-rest: $(STAMP)
-	bash scripts/vm.sh radio -v -s tests/radio $(addprefix --ignore=,$(VM_SHARED))
+	bash scripts/vm.sh radio -v -s tests/radio $(addprefix --ignore=,$(VM_SHARED_FILES)) \
+		$(addprefix --deselect=,$(VM_SHARED_TESTS))
 
 # The netem tier: tests/netem in a Debian kernel under virtme-ng (this kernel has no
 # sch_netem). Fails if the VM cannot run; SDFR_SKIP_VM=1 skips it, saying so.

@@ -53,6 +53,19 @@ _HASH_LEN = 32  # SHA-256
 MASK = "*" * 16
 _SYS_NET = Path("/sys/class/net")
 
+#: 802.11s peering's timers, for robots' slow or busy CPUs and crowded air. wpa_supplicant's
+#: defaults wait 40 ms for a peer's Confirm (re-sending the Open twice, then closing the link
+#: and holding), and a peer whose SAE failed three times is blocked for `mesh_max_inactivity`
+#: (300 s). A peer a moment slow to answer (an SAE exchange is a few elliptic-curve operations
+#: each way) then stays unpeered for minutes. 1 s for a Confirm costs only when a frame is lost
+#: (a retry comes later); a block of 60 s lets a robot that failed try again within a minute.
+MESH_TIMERS = {
+    "dot11MeshRetryTimeout": 1000,
+    "dot11MeshConfirmTimeout": 1000,
+    "dot11MeshMaxRetries": 3,
+}
+MESH_MAX_INACTIVITY = 60
+
 # Where each program comes from on Debian, for the "not installed" message.
 PACKAGES = {"ip": "iproute2", "iw": "iw", "wpa_supplicant": "wpasupplicant"}
 
@@ -260,12 +273,14 @@ def supplicant_config(
             f"psk={key}",
         ]
     elif mode == "mesh":
+        head.append(f"mesh_max_inactivity={MESH_MAX_INACTIVITY}")
         net = [
             f'ssid="{ssid}"',
             "mode=5",
             f"frequency={frequency}",
             "key_mgmt=SAE",
             f'sae_password="{key}"',
+            *(f"{name}={value}" for name, value in MESH_TIMERS.items()),
         ]
     else:
         raise ConfigError(f"wifi_mode: must be ibss or mesh, got {mode!r}")

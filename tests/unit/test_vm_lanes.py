@@ -5,9 +5,11 @@ both. `SDFR_VM_PLAN=1` makes vm.sh say what its VM would run, without booting it
 
 from __future__ import annotations
 
+import functools
 import os
 import shlex
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,7 +25,8 @@ def lane_commands() -> list[list[str]]:
         ["make", "-s", "-n", "--no-print-directory", *LANES],
         cwd=ROOT, capture_output=True, text=True, check=True,
     )  # fmt: skip
-    commands = [shlex.split(line) for line in out.stdout.splitlines() if "scripts/vm.sh" in line]
+    lines = out.stdout.replace("\\\n", " ").splitlines()
+    commands = [shlex.split(line) for line in lines if "scripts/vm.sh" in line]
     assert len(commands) == len(LANES), out.stdout
     return commands
 
@@ -39,17 +42,19 @@ def plan(command: list[str], **env: str) -> str:
     return res.stdout
 
 
-def files_run(pytest_args: list[str]) -> set[str]:
-    """The test files pytest would collect from these arguments (paths and --ignore=)."""
-    ignored = {a.split("=", 1)[1] for a in pytest_args if a.startswith("--ignore=")}
-    found: set[str] = set()
-    for a in pytest_args:
-        if not a.startswith("tests/"):
-            continue
-        path = ROOT / a
-        files = sorted(path.glob("test_*.py")) if path.is_dir() else [path]
-        found |= {str(f.relative_to(ROOT)) for f in files}
-    return {f for f in found if f not in ignored}
+def collected(pytest_args: list[str]) -> list[str]:
+    """The test ids pytest collects from these arguments (as the VM's pytest would)."""
+    return list(_collected(tuple(a for a in pytest_args if a not in ("-v", "-s"))))
+
+
+@functools.cache
+def _collected(args: tuple[str, ...]) -> tuple[str, ...]:
+    res = subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", *args],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    return tuple(line for line in res.stdout.splitlines() if "::" in line)
 
 
 def planned(output: str) -> tuple[str, list[str]]:
@@ -61,21 +66,18 @@ def planned(output: str) -> tuple[str, list[str]]:
 
 
 def test_the_two_vms_run_every_vm_test_once_with_the_modules_it_needs() -> None:
-    every = {
-        str(p.relative_to(ROOT))
-        for tier in MODULES
-        for p in (ROOT / "tests" / tier).glob("test_*.py")
-    }
+    every = collected([f"tests/{tier}" for tier in MODULES])
+    assert len(every) > 10
     seen: list[str] = []
     for command in lane_commands():
         modules, args = planned(plan(command))
-        files = files_run(args)
-        assert files, f"{command}: no test"
-        for f in files:
-            tier = f.split("/")[1]
-            assert MODULES[tier] in modules, f"{f} runs in a VM without {MODULES[tier]}"
-        seen += files
-    assert sorted(seen) == sorted(every), "each VM test file must run in exactly one VM"
+        tests = collected(args)
+        assert tests, f"{command}: no test"
+        for test in tests:
+            tier = test.split("/")[1]
+            assert MODULES[tier] in modules, f"{test} runs in a VM without {MODULES[tier]}"
+        seen += tests
+    assert sorted(seen) == sorted(every), "each VM test must run in exactly one VM"
 
 
 @pytest.mark.parametrize("tier", sorted(MODULES))
@@ -87,7 +89,7 @@ def test_a_skipped_tier_drops_out_of_both_vms_and_says_so(tier: str) -> None:
             continue  # a VM left with nothing to run does not boot
         modules, args = planned(out)
         assert MODULES[tier] not in modules
-        assert all(f.split("/")[1] != tier for f in files_run(args)), out
+        assert all(t.split("/")[1] != tier for t in collected(args)), out
     said = [plan(c, **{var: "1"}) for c in lane_commands()]
     assert any(f"{var}=1" in s and "did not run" in s for s in said)
 

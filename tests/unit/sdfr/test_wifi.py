@@ -102,6 +102,7 @@ def test_mesh_supplicant_config(tmp_path: Path) -> None:
     p = wifi.plan(cfg_for(tmp_path, wifi_mode="mesh", wifi_freq=5180, wifi_country="de"))
     lines = p.config_text.splitlines()
     assert "country=DE" in lines and "ap_scan=2" not in lines
+    assert "mesh_max_inactivity=60" in lines  # a peer whose SAE failed is blocked 60 s
     net = lines[lines.index("network={") + 1 : lines.index("}")]
     assert [x.strip() for x in net] == [
         'ssid="sdfr-fleet-7"',
@@ -109,6 +110,10 @@ def test_mesh_supplicant_config(tmp_path: Path) -> None:
         "frequency=5180",
         "key_mgmt=SAE",
         f'sae_password="{p.key}"',
+        # peering's timers, for slow CPUs: 1 s for a Confirm, not 40 ms
+        "dot11MeshRetryTimeout=1000",
+        "dot11MeshConfirmTimeout=1000",
+        "dot11MeshMaxRetries=3",
     ]
     assert p.commands[0] == ("iw", "reg", "set", "DE")
     assert ("iw", "dev", "wlan0", "set", "type", "mesh") in p.commands
