@@ -1,7 +1,6 @@
-"""`make test-vms` shares the VM tiers' tests between two VMs (the Makefile's two lanes,
-each a `scripts/vm.sh` run): every test file of tests/netem and tests/radio runs in exactly
-one of them, each VM loads the modules its tests need, and a skipped tier's tests drop out of
-both. `SDFR_VM_PLAN=1` makes vm.sh say what its VM would run, without booting it."""
+"""`make test-vms` runs the VM tiers in two VMs (the Makefile's two lanes, each a
+`scripts/vm.sh` run): every test of tests/netem and tests/radio runs in exactly one of them,
+each VM loads the modules its tests need, and a skipped tier's tests drop out of both. `SDFR_VM_PLAN=1` makes vm.sh say what its VM would run, without booting it."""
 
 from __future__ import annotations
 
@@ -15,7 +14,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-LANES = ("vm-netem-and-joins", "vm-radio-rest")
+LANES = ("test-netem", "test-radio")
 MODULES = {"netem": "sch_netem", "radio": "mac80211_hwsim"}
 
 
