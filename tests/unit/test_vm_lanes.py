@@ -1,6 +1,7 @@
 """`make test-vms` runs the VM tiers in two VMs (the Makefile's two lanes, each a
 `scripts/vm.sh` run): every test of tests/netem and tests/radio runs in exactly one of them,
-each VM loads the modules its tests need, and a skipped tier's tests drop out of both. `SDFR_VM_PLAN=1` makes vm.sh say what its VM would run, without booting it."""
+each VM loads the modules its tests need, and a skipped tier's tests drop out of both.
+`SDFR_VM_PLAN=1` makes vm.sh say what its VM would run, without booting it."""
 
 from __future__ import annotations
 
