@@ -4,11 +4,6 @@
 #
 #   scripts/vm.sh netem [PYTEST ARGS...]   sch_netem: link shaping (default: -v -s tests/netem)
 #   scripts/vm.sh radio [PYTEST ARGS...]   mac80211_hwsim: 802.11 radios (default: -v -s tests/radio)
-#   scripts/vm.sh netem+radio [PYTEST ARGS...]   one VM with both tiers' modules (default: both)
-#
-# `make test-vms` runs two VMs side by side and shares the tiers' tests between them so both
-# take about as long (see the Makefile). A skipped tier's test paths (tests/TIER...) are dropped
-# from the arguments; a VM left with no test path does not boot.
 #
 # This machine's kernel has no modules at all (see ../shared/ENVIRONMENT.md), so the
 # newest /boot/vmlinuz-*-amd64 is booted with virtme-ng under QEMU: the guest
@@ -25,7 +20,7 @@
 #   SDFR_VM_KERNEL=PATH   the kernel image to boot (default: newest Debian amd64)
 #   SDFR_VM_KVM=1         use KVM (default off: it hangs on the CI machines)
 #   SDFR_KEEP_LOGS=DIR    where a failed test's lab folders go (default: $TMPDIR or /tmp)
-#   SDFR_VM_PLAN=1        say which modules and tests the VM would have, and stop there
+#   SDFR_VM_PLAN=1        say which module and tests the VM would have, and stop there
 #
 # A failed test's lab folders (every robot's sdfrd.log and state, the pcaps) are copied out
 # of the guest as the test fails (tests/support/vmkeep.py), into a new folder
@@ -40,70 +35,41 @@ cd "$(dirname "$0")/.."
 repo=$(pwd)
 
 tier=${1:-}
-shift || true
+case "$tier" in
+netem)
+    skip_var=SDFR_SKIP_NETEM
+    modules='modprobe sch_netem'
+    ;;
+radio)
+    skip_var=SDFR_SKIP_RADIO
+    # No radio at load: each lab makes its own over generic netlink (netlab/hwsim.py).
+    modules='modprobe mac80211_hwsim radios=0'
+    ;;
+*)
+    echo "vm: usage: scripts/vm.sh netem|radio [PYTEST ARGS...] (got ${tier:-nothing})" >&2
+    exit 2
+    ;;
+esac
+shift
 me="vm-$tier"
+
 if [ "${SDFR_SKIP_VM:-0}" = 1 ]; then
     echo "$me: SKIPPED (SDFR_SKIP_VM=1): the $tier tier did not run"
     exit 0
 fi
-pytest_args=("$@")
-tiers=() modules="" default_limit=0 hot_dirs=()
-IFS=+ read -r -a asked <<<"$tier"
-[ ${#asked[@]} -gt 0 ] || asked=("")
-for t in "${asked[@]}"; do
-    case "$t" in
-    netem)
-        skip_var=SDFR_SKIP_NETEM
-        module='modprobe sch_netem'
-        limit_t=900
-        ;;
-    radio)
-        skip_var=SDFR_SKIP_RADIO
-        # No radio at load: each lab makes its own over generic netlink (netlab/hwsim.py).
-        module='modprobe mac80211_hwsim radios=0'
-        # The radio tier's labs take minutes each to join their WiFi under emulation.
-        limit_t=2100
-        ;;
-    *)
-        echo "vm: usage: scripts/vm.sh netem|radio|netem+radio [PYTEST ARGS...] (got ${tier:-nothing})" >&2
-        exit 2
-        ;;
-    esac
-    if [ "${!skip_var:-0}" = 1 ]; then
-        echo "vm-$t: SKIPPED ($skip_var=1): the $t tier did not run"
-        kept=()
-        for a in ${pytest_args[@]+"${pytest_args[@]}"}; do
-            case "$a" in tests/"$t" | tests/"$t"/* | tests/"$t"::*) ;; *) kept+=("$a") ;; esac
-        done
-        pytest_args=(${kept[@]+"${kept[@]}"})
-        continue
-    fi
-    tiers+=("$t")
-    modules="${modules:+$modules && }$module"
-    default_limit=$((default_limit + limit_t))
-    hot_dirs+=("tests/$t")
-done
-[ ${#tiers[@]} -gt 0 ] || exit 0
-if [ $# -eq 0 ]; then
-    pytest_args=(-v -s "${hot_dirs[@]}")
-else
-    has_path=""
-    for a in "${pytest_args[@]}"; do
-        case "$a" in tests/*) has_path=1 ;; esac
-    done
-    if [ -z "$has_path" ]; then
-        echo "$me: no test of a tier that runs is left in the arguments: the VM does not boot"
-        exit 0
-    fi
+if [ "${!skip_var:-0}" = 1 ]; then
+    echo "$me: SKIPPED ($skip_var=1): the $tier tier did not run"
+    exit 0
 fi
-
+pytest_args=("$@")
+[ ${#pytest_args[@]} -gt 0 ] || pytest_args=(-v -s "tests/$tier")
+hot_dirs=("tests/$tier")
 if [ "${SDFR_VM_PLAN:-0}" = 1 ]; then
     echo "$me: would boot with \`$modules\` and run pytest $(printf '%q ' "${pytest_args[@]}")"
     exit 0
 fi
-for t in "${tiers[@]}"; do
-    bash scripts/bootstrap-vm.sh "$t"
-done
+
+bash scripts/bootstrap-vm.sh "$tier"
 export PATH="$repo/.venv/vm/bin:$PATH" # vng runs virtme-run from PATH
 
 kernel=${SDFR_VM_KERNEL:-}
@@ -120,6 +86,9 @@ kver=${kernel#/boot/vmlinuz-}
     exit 1
 }
 
+# The radio tier's labs take minutes each to join their WiFi under emulation (about 20 in all).
+default_limit=900
+[ "$tier" = radio ] && default_limit=2100
 limit=${SDFR_VM_TIMEOUT:-$default_limit}
 
 res=$(mktemp -d -t sdfr-$me.XXXXXX)
@@ -195,7 +164,7 @@ trap 'echo "$me: terminated, stopping the VM" >&2; exit 143' TERM
     printf 'res=%q\n' "$res"
     printf 'cd %q\n' "$repo"
     echo 'echo "vm: up after $(cut -d" " -f1 /proc/uptime)s: kernel $(uname -r), $(nproc) cpu"'
-    printf 'if ! { %s; }; then touch "$res/no-module"; exit 0; fi\n' "$modules"
+    printf 'if ! %s; then touch "$res/no-module"; exit 0; fi\n' "$modules"
     echo 'export PYTHONDONTWRITEBYTECODE=1 # the repository is read-only in the guest'
     printf 'hot_roots=%q\n' "$hot_roots"
     echo 'if [ -n "$hot_roots" ] && mkdir -p /run/sdfr-hot &&'
@@ -292,7 +261,7 @@ if [ "$rc" != 0 ]; then
     exit "$rc"
 fi
 if [ "$tests" = 0 ] || [ "$skipped" != 0 ]; then
-    echo "$me: FAILED: tests were skipped or none ran in the VM, where the ${tiers[*]} tier must work" >&2
+    echo "$me: FAILED: tests were skipped or none ran in the VM, where the $tier tier must work" >&2
     exit 1
 fi
 echo "$me: passed"
