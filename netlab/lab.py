@@ -118,7 +118,7 @@ class Lab(LabProcesses, LabMedium):
         self.air = air
         #: A radio lab's medium: "netlab" (`netlab.airmedium`: the range model decides who
         #: hears a frame) or "hwsim" (the kernel's own: every radio hears every other at once,
-        #: no moves or partitions; 802.11s mesh needs it in the emulated VM for now).
+        #: no moves or partitions).
         self.air_medium = air_medium
         if span is not None and air != "wired":
             raise NetlabError("a lab across hosts (span) runs on the wired medium")

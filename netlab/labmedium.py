@@ -16,7 +16,7 @@ from netlab.doctor import capabilities
 from netlab.errors import NetlabError
 from netlab.medium import Medium
 from netlab.mobility import MobilityModel, walk
-from netlab.ranges import Links, Pos, Topology, with_link_loss
+from netlab.ranges import Links, Pos, Topology, forwarded, with_link_loss
 from netlab.robots import Robot, RobotRef
 from netlab.shaping import LinkShape
 
@@ -35,6 +35,7 @@ class LabMedium:
     _robots: dict[str, Robot]
     _shapes: dict[str, LinkShape]
     _nft_loss: dict[str, float]
+    _daemon_opts: dict[str, dict[str, Any]]  # each robot's sdfrd options, as last started
     #: A lab spanning hosts (`netlab.vxlan`): the other hosts' robots, by name, with their MAC.
     _remote: dict[str, str]
 
@@ -121,12 +122,23 @@ class LabMedium:
 
         Includes each robot's own link loss (`shape(loss=...)`), however it is realised.
         A radio lab's medium delivers frames by the same links; on hwsim's own medium
-        every radio hears every other.
+        every radio hears every other. Radios in an 802.11s mesh (`mesh_radios`) forward
+        each other's frames: between them a pair is linked through any chain of them, with
+        its best chain's loss (`netlab.ranges.forwarded`).
         """
         if self.air != "wired" and self.air_medium != "netlab":
             return {(a, b): 0.0 for a in self._robots for b in self._robots if a != b}
         link_loss = {name: shape.loss for name, shape in self._shapes.items()}
-        return with_link_loss(self.topology.links(), link_loss)
+        links = with_link_loss(self.topology.links(), link_loss)
+        return forwarded(links, self.mesh_radios()) if self.air != "wired" else links
+
+    def mesh_radios(self) -> set[str]:
+        """A radio lab's robots whose sdfrd was last started in 802.11s mesh (`wifi_mode`):
+        their radios stay in the mesh, forwarding, while sdfrd is stopped (its
+        wpa_supplicant runs on until the next start or the lab's end)."""
+        if self.air == "wired":
+            return set()
+        return {r for r, opts in self._daemon_opts.items() if opts.get("wifi_mode") == "mesh"}
 
     def neighbours(self, ref: RobotRef) -> set[str]:
         """The robots `ref` hears now (ground truth)."""

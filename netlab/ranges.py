@@ -121,6 +121,28 @@ def with_link_loss(links: Mapping[Pair, float], link_loss: Mapping[str, float]) 
     }
 
 
+def forwarded(links: Mapping[Pair, float], relays: Iterable[str]) -> Links:
+    """`links` as a mesh that forwards (802.11s): between `relays`, a pair is linked through
+    any chain of relays, with the loss of its best chain (the most delivered, hops in series).
+    Links from or to a robot not among `relays` stay as they are."""
+    mesh = set(relays)
+    keep = {p: 1.0 - loss / 100.0 for p, loss in links.items() if loss < 100.0}
+    best = {p: k for p, k in keep.items() if set(p) <= mesh}
+    nodes = sorted(mesh)
+    for via in nodes:  # Floyd-Warshall on delivery, the product of the hops'
+        into = [(a, k) for a in nodes if (k := best.get((a, via))) is not None]
+        out_of = [(b, k) for b in nodes if (k := best.get((via, b))) is not None]
+        for a, ka in into:
+            for b, kb in out_of:
+                if a != b and ka * kb > best.get((a, b), 0.0):
+                    best[(a, b)] = ka * kb
+    out = dict(links)
+    for pair, k in best.items():
+        if k > keep.get(pair, 0.0):  # a chain delivers more than the direct link, or is one
+            out[pair] = 100.0 * (1.0 - k)
+    return out
+
+
 def check_loss(loss: float, what: str = "loss") -> float:
     if not 0 <= loss <= 100:
         raise ValueError(f"{what} must be 0-100 %, got {loss}")

@@ -5,9 +5,10 @@
   and list each other with their services, then one walks out of range (the medium stops
   delivering its frames, by the range model) and back, then a partition and a merge;
 * radio-range in 802.11s mesh (SAE), over netlab's own radio medium, the same checks;
-* radio-mobility in IBSS: 3 robots walk on random waypoints (the wired `mobility`
-  scenario's hall and range) at a 2 s beacon, and the lists must agree with the medium's
-  truth as there, a new link allowed 3 beacons instead of 1;
+* radio-mobility in IBSS and in 802.11s mesh: 3 robots walk on random waypoints (the wired
+  `mobility` scenario's hall and range) at a 2 s beacon, and the lists must agree with the
+  medium's truth as there, a new link allowed 3 beacons instead of 1 (in mesh the truth
+  links robots through a third that forwards);
 * radio-range on the wired medium in the same VM, for the comparison.
 
 Mesh peering in the emulated VM needed sdfrd's mesh timers (`sdfr.host.wifi.MESH_TIMERS`):
@@ -137,17 +138,22 @@ def test_the_range_scenario_in_mesh_mode(tmp_path: Path) -> None:
     )
 
 
-def test_robots_walking_over_the_air_keep_lists_that_agree_with_the_medium(tmp_path: Path) -> None:
-    """radio-mobility in IBSS over netlab's medium: 3 robots on random waypoints (2 s
-    beacon), links coming and going by the range model; once settled, the lists agree with
-    the medium by the wired `mobility` scenario's two checks, with the air's longer lag for
-    new links."""
-    result, report = run("radio-mobility", tmp_path / "run", wifi_mode="ibss")
-    check_air(report)
+@pytest.mark.parametrize("mode", ["ibss", "mesh"])
+def test_robots_walking_over_the_air_keep_lists_that_agree_with_the_medium(
+    tmp_path: Path, mode: str
+) -> None:
+    """radio-mobility over netlab's medium, in IBSS and in 802.11s mesh: 3 robots on random
+    waypoints (2 s beacon), links coming and going by the range model; once settled, the
+    lists agree with the medium by the wired `mobility` scenario's two checks, with the
+    air's longer lag for new links. In mesh the radios forward each other's frames, so the
+    medium's truth links two robots out of range through a third in range of both
+    (`Lab.links`, `netlab.ranges.forwarded`)."""
+    result, report = run("radio-mobility", tmp_path / "run", wifi_mode=mode)
+    check_air(report, mode)
     agreement = "; ".join(c.detail for c in result.checks if c.kind == "agreement")
-    air = report["air"]  # the air only is captured: its data frames are encrypted (WPA2)
+    air = report["air"]  # the air only is captured: its data frames are encrypted
     print(
-        f"\nradio-mobility ibss: {startup_line(result, report)}; {agreement}; run "
+        f"\nradio-mobility {mode}: {startup_line(result, report)}; {agreement}; run "
         f"{result.duration:.0f} s; air: {air['frames']} frames, {air['bytes']} B; "
         f"{air_line(report)}; {medium_line(tmp_path / 'run')}"
     )

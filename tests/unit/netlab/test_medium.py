@@ -26,7 +26,7 @@ from netlab.errors import (
 )
 from netlab.medium import LOSS_SCALE, loss_units, ruleset
 from netlab.mobility import HALL, RandomWaypoint
-from netlab.ranges import LossyDisc, Topology, UnitDisc, combine, with_link_loss
+from netlab.ranges import LossyDisc, Topology, UnitDisc, combine, forwarded, with_link_loss
 from netlab.shaping import LinkShape, netem_options, parse_rate, plan, tbf_options
 
 HERE = Capabilities(root=True, netns=True, veth_bridge=True, nft_bridge=True, numgen=True, tbf=True)
@@ -214,6 +214,30 @@ def test_link_loss_combines_with_pair_loss_on_both_directions() -> None:
     out = with_link_loss(links, {"a": 50.0})
     assert out == {("a", "b"): 75.0, ("b", "a"): 50.0, ("b", "c"): 0.0}
     assert combine() == 0.0 and combine(100.0, 3.0) == 100.0
+
+
+def test_a_mesh_forwards_between_its_radios_by_the_best_chain() -> None:
+    """A line r1 - r2 - r3 (r1 and r3 out of each other's range) and r4 beside r3 only:
+    among mesh radios r1..r3, r1 and r3 reach each other through r2, the hops' losses in
+    series; r4 (not in the mesh) neither relays nor is reached through it."""
+    topo = Topology(UnitDisc(10.0))
+    for i, name in enumerate(["r1", "r2", "r3", "r4"]):
+        topo.add(name, (8.0 * i, 0.0))
+    topo.set_pair_quality("r1", "r2", 50.0, both=False)
+    direct = topo.links()
+    assert ("r1", "r3") not in direct and ("r3", "r4") in direct
+    mesh = forwarded(direct, ["r1", "r2", "r3"])
+    assert mesh[("r1", "r3")] == pytest.approx(50.0) and mesh[("r3", "r1")] == 0.0
+    assert mesh[("r1", "r2")] == 50.0  # a direct link keeps its own loss
+    assert ("r2", "r4") not in mesh and ("r4", "r2") not in mesh  # r4 relays nothing
+    assert {p: v for p, v in mesh.items() if p in direct} == direct
+    # a chain that delivers more than a lossy direct link wins: r1 -> r2 -> r3 at 0 % vs 90 %
+    lossy = {("r1", "r3"): 90.0, ("r1", "r2"): 0.0, ("r2", "r3"): 20.0}
+    assert forwarded(lossy, ["r1", "r2", "r3"])[("r1", "r3")] == pytest.approx(20.0)
+    # a partition is a partition in the mesh too: no chain crosses it
+    topo.partition([["r1"], ["r2", "r3"]])
+    assert ("r1", "r3") not in forwarded(topo.links(), ["r1", "r2", "r3"])
+    assert forwarded(direct, []) == direct
 
 
 # -- mobility --------------------------------------------------------------------------------
