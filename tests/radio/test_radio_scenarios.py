@@ -9,7 +9,8 @@
   `mobility` scenario's hall and range) at a 2 s beacon, and the lists must agree with the
   medium's truth as there, a new link allowed 3 beacons instead of 1 (in mesh the truth
   links robots through a third that forwards);
-* radio-range on the wired medium in the same VM, for the comparison.
+and radio-range on the wired medium, for the comparison, runs in the netem tier's VM
+(tests/netem/test_radio_range_wired.py).
 
 Mesh peering in the emulated VM needed sdfrd's mesh timers (`sdfr.host.wifi.MESH_TIMERS`):
 with wpa_supplicant's 40 ms ones a robot's peer links kept closing and reopening.
@@ -24,36 +25,14 @@ CPU: the scenarios' deadlines are generous.
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from netlab import scenario
+from tests.support.radio import run, startup_line, times_line
 
 pytestmark = pytest.mark.root
-
-
-def run(
-    name: str, folder: Path, medium: str | None = None, **sdfrd: Any
-) -> tuple[scenario.RunResult, dict[str, Any]]:
-    """A bundled scenario run as the tier runs it (quick, no plots), on `medium` when given,
-    with `sdfrd`'s options added; it must pass."""
-    sc = scenario.load(scenario.find(name))
-    if sdfrd:
-        sc = replace(sc, sdfrd={**sc.sdfrd, **sdfrd})
-    result = scenario.run(sc, run_dir=folder, quick=True, plots=False, medium=medium)
-    on = f" on the {medium} medium" if medium else ""
-    assert result.ok, "\n".join([f"scenario {name}{on} {result.status}:", *result.summary()])
-    report = json.loads((folder / "report.json").read_text())
-    return result, report
-
-
-def times_line(result: scenario.RunResult) -> str:
-    """What each check took."""
-    took = [(c.description, c.took) for c in result.checks if c.took is not None]
-    return "; ".join(f"{what}: {t:.1f} s" for what, t in took)
 
 
 def medium_line(folder: Path) -> str:
@@ -75,17 +54,6 @@ def air_line(report: dict[str, Any]) -> str:
         kinds = ", ".join(f"{k} {v['bytes']} B" for k, v in t["by_kind"].items() if v["frames"])
         parts.append(f"{robot} {t['frames']} frames {t['bytes']} B ({kinds})")
     return "; ".join(parts)
-
-
-def startup_line(result: scenario.RunResult, report: dict[str, Any], joined: bool = True) -> str:
-    """Start-up's figures: to healthy (over the air, the WiFi `joined`), then to all listing
-    all."""
-    steps = report["meta"]["steps"]
-    start = steps[0]["end"] - steps[0]["start"]
-    listed = next(c for c in result.checks if c.kind in ("lists", "medium"))
-    healthy = "healthy (WiFi joined)" if joined else "healthy"
-    n = report["meta"]["robots"]
-    return f"sdfrd {healthy} on {n} in {start:.1f} s, all list all {listed.took:.1f} s later"
 
 
 def check_air(report: dict[str, Any], mode: str = "ibss") -> None:
@@ -156,18 +124,4 @@ def test_robots_walking_over_the_air_keep_lists_that_agree_with_the_medium(
         f"\nradio-mobility {mode}: {startup_line(result, report)}; {agreement}; run "
         f"{result.duration:.0f} s; air: {air['frames']} frames, {air['bytes']} B; "
         f"{air_line(report)}; {medium_line(tmp_path / 'run')}"
-    )
-
-
-def test_the_same_range_scenario_on_the_wired_medium_in_the_same_vm(tmp_path: Path) -> None:
-    """radio-range on the wired medium (a bridge and its rules), in the same emulated VM: the
-    figures the radio's are set beside in docs/fleet-behaviour.md, measured alike."""
-    result, report = run("radio-range", tmp_path / "run", medium="wired")
-    assert report["meta"]["medium"] == "wired" and "air" not in report
-    payload = {r: t["tx_kB"]["payload"] for r, t in report["traffic"]["robots"].items()}
-    frames = {r: t["tx_kB"]["frame"] for r, t in report["traffic"]["robots"].items()}
-    start = startup_line(result, report, joined=False)
-    print(
-        f"\nradio-range wired (same VM): {start}; {times_line(result)}; run "
-        f"{result.duration:.0f} s; SDfR payload sent (kB) {payload}; frames sent (kB) {frames}"
     )
