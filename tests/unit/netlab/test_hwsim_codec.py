@@ -71,16 +71,18 @@ def test_the_doctor_says_why_radio_labs_cannot_run(tmp_path: Path) -> None:
 class _RadioMedium(LabMedium):
     """The medium part of a radio lab, alone (its lab is up, robots r1 and r2 at 0, 0)."""
 
-    def __init__(self, workdir: Path, air_medium: str = "netlab") -> None:
+    def __init__(self, workdir: Path, air_medium: str = "netlab", robots: int = 2) -> None:
         self.air, self._state, self._batch = "radio", "up", 0
         self.air_medium = air_medium
         self.workdir = workdir
         (workdir / "air").mkdir()
         self.topology = Topology(UnitDisc(10.0))
         self._robots = {}
-        self._radio_addrs = {"r1": "42:00:00:00:01:00", "r2": "42:00:00:00:02:00"}
+        names = [f"r{i}" for i in range(1, robots + 1)]
+        self._radio_addrs = {name: f"42:00:00:00:0{i}:00" for i, name in enumerate(names, 1)}
         self._shapes, self._nft_loss, self._remote = {}, {}, {}
-        for i, name in enumerate(("r1", "r2")):
+        self._daemon_opts = {}
+        for i, name in enumerate(names):
             self.topology.add(name)
             self._robots[name] = Robot(
                 name, i, f"nlx-{name}", f"p-{name}", f"02:00:00:00:0{i}:00",
@@ -129,6 +131,26 @@ def test_a_radio_labs_moves_and_partitions_reach_its_medium_as_links(
     call(medium)
     assert medium.links() == links
     assert medium.air_links() == links
+
+
+def test_a_mesh_radio_lab_s_truth_links_robots_through_a_third_and_its_air_does_not(
+    tmp_path: Path,
+) -> None:
+    """r1 - r2 - r3 in a line, r1 and r3 out of each other's range: once their sdfrd run in
+    802.11s mesh, the lab's truth links r1 and r3 (r2's radio forwards), while the medium
+    still carries each frame only between radios in range; in IBSS nobody forwards."""
+    medium = _RadioMedium(tmp_path, robots=3)
+    for i, name in enumerate(("r1", "r2", "r3")):
+        medium.move(name, (8.0 * i, 0.0))
+    direct = {(a, b): 0.0 for a, b in [("r1", "r2"), ("r2", "r1"), ("r2", "r3"), ("r3", "r2")]}
+    medium._daemon_opts = {name: {"wifi_mode": "ibss"} for name in ("r1", "r2", "r3")}
+    assert medium.mesh_radios() == set() and medium.links() == direct
+    medium._daemon_opts = {name: {"wifi_mode": "mesh"} for name in ("r1", "r2", "r3")}
+    assert medium.mesh_radios() == {"r1", "r2", "r3"}
+    assert medium.links() == {**direct, ("r1", "r3"): 0.0, ("r3", "r1"): 0.0}
+    assert medium.air_links() == direct  # the air itself: only radios in range
+    medium.move("r2", (8.0, 30.0))  # the relay walks away: nobody hears anybody
+    assert medium.links() == {} and medium.air_links() == {}
 
 
 @pytest.mark.parametrize(
