@@ -19,11 +19,17 @@ venv:
 
 # The unit tests (CPU-bound, no timing) on every core (pytest-xdist); then the tiers that
 # run fleets, one test at a time (their deadlines and figures assume the machine is theirs).
+# Each tier's start time is printed (UTC), so that a run's log says where its time went.
 test: $(STAMP)
+	@date -u '+make test: %T the unit tests'
 	$(BIN)/pytest -q -n auto --maxprocesses=4 --durations=10 tests/unit
+	@date -u '+make test: %T the host tier'
 	$(BIN)/pytest -q --durations=30 tests/ --ignore=tests/unit
+	@date -u '+make test: %T the Python 3.10 tier'
 	$(MAKE) --no-print-directory test-py310
+	@date -u '+make test: %T the VM tiers'
 	$(MAKE) --no-print-directory test-vms
+	@date -u '+make test: %T done'
 
 # The Python 3.10 tier (Ubuntu 22.04 / ROS 2 Humble / Jetson): the unit tests and fleet tests
 # under 3.10 in .venv310. Fails if no 3.10 can be had; SDFR_SKIP_PY310=1 skips it, saying so.
