@@ -76,6 +76,7 @@ MISS_LIMIT = 3
 PING_WINDOW = 20
 REPLY_DELAY_MAX = 0.5
 UPDATE_GAP = 0.25
+UPDATE_BURST = 3
 #: Most peers one beacon asks for a ping reply (`CoreConfig.beacon_answers`).
 BEACON_ANSWERS = 20
 
@@ -94,10 +95,15 @@ class CoreConfig:
     reply_delay_max: float = REPLY_DELAY_MAX
     mx: int = 1
     jitter: float = 0.1
-    update_coalesce: float = 0.02
-    #: Changes go out at most once per this many seconds: a change after a quiet spell goes
-    #: out at once (after `update_coalesce`), the next ones gather until the gap has passed.
+    #: A change waits this long for the rest of a burst before it is announced (0: the next
+    #: turn of the event loop, which already gathers what arrived together).
+    update_coalesce: float = 0.0
+    #: Changes are announced at once while `update_burst` announcements are saved up, one
+    #: more each `update_gap` seconds (a token bucket): at the paper's churn (a change every
+    #: 1.25 s) every change goes out at once; a program's burst of changes goes out in
+    #: `update_burst` announcements, then gathers, one announcement a gap.
     update_gap: float = UPDATE_GAP
+    update_burst: int = UPDATE_BURST
     #: Robot-to-robot datagrams in the compact form (`sdfr.wire.encode`) to peers that read
     #: it, and the beacon as everyone's ping; False: only the full forms, as wire version 1.
     wire_compact: bool = True

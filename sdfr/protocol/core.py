@@ -85,11 +85,10 @@ class Core(CoreState):
         self.services = tuple(services)
         self.digest = service_digest(self.services)
         if self._started and not self._stopped:
-            # After a quiet spell at once (a burst from one program gathers for
-            # `update_coalesce`); within `update_gap` of the last change announced, at its end.
-            cfg = self.config
-            due = max(now + cfg.update_coalesce, self._last_change_sent + cfg.update_gap)
-            self._update_at = min(self._update_at, due)
+            # At once while announcements are saved up (`update_burst`), else when the next
+            # is (one each `update_gap`); what changes meanwhile goes with it.
+            wait = max(self.config.update_coalesce, self._update_budget.wait(now))
+            self._update_at = min(self._update_at, now + wait)
 
     def restore(self, views: Iterable[PeerRecord]) -> None:
         """Load the history map saved by an earlier run: every peer starts unreachable and

@@ -15,17 +15,25 @@ class TokenBucket:
     tokens: float = -1.0
     stamp: float = 0.0
 
+    def level(self, now: float) -> float:
+        """The tokens saved up by `now` (nothing spent)."""
+        if self.tokens < 0:
+            return self.burst
+        if now > self.stamp:
+            return min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+        return self.tokens
+
     def take(self, now: float, n: float = 1.0) -> bool:
         """Spend `n` tokens if there are that many; False (and nothing spent) otherwise."""
-        if self.tokens < 0:
-            self.tokens, self.stamp = self.burst, now
-        elif now > self.stamp:
-            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
-            self.stamp = now
+        self.tokens, self.stamp = self.level(now), max(now, self.stamp)
         if self.tokens < n:
             return False
         self.tokens -= n
         return True
+
+    def wait(self, now: float, n: float = 1.0) -> float:
+        """Seconds from `now` until `n` tokens are saved up (0: they are)."""
+        return max(0.0, (n - self.level(now)) / self.rate)
 
 
 class KeyedBuckets:

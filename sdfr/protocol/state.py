@@ -122,7 +122,8 @@ class CoreState:
         #: Sets announced lately, by version: a robot that missed a change is sent what
         #: changed since the set it holds.
         self._recent: OrderedDict[int, tuple[Service, ...]] = OrderedDict()
-        self._last_change_sent = -math.inf
+        #: Announcements of our set saved up (`CoreConfig.update_burst`, `update_gap`).
+        self._update_budget = TokenBucket(1.0 / max(config.update_gap, 1e-9), config.update_burst)
         self._dictionary_cache: tuple[int, bytes] | None = None
         #: The last multicast deltas' own steps, (base, version, body), oldest first, while
         #: each followed the one before: what the next delta carries when repairing.

@@ -274,7 +274,7 @@ def announce(core: CoreState, now: float) -> None:
     core._recent.move_to_end(core.version)
     while len(core._recent) > max(1, core.config.delta_history):
         core._recent.popitem(last=False)
-    core._last_change_sent = now
+    core._update_budget.take(now)  # (an announcement that found none saved spends none)
     core._update_at = math.inf
     core._steps = []  # a delta sent now puts its own step back (`announce_change`)
 
