@@ -366,6 +366,13 @@ def test_a_discovery_layer_thread_that_ended_is_down_though_its_process_runs() -
     assert discovery_state(record).up
     done.set()
     layer.join()
+    # join() returns when the thread's Python code is done; the kernel removes the thread a
+    # moment later (on a busy machine, milliseconds: CI saw it still there).
+    task = Path(f"/proc/{os.getpid()}/task/{tids[0]}")
+    deadline = time.monotonic() + 10
+    while task.exists():
+        assert time.monotonic() < deadline, f"{task} still there 10 s after the thread ended"
+        time.sleep(0.001)
     assert not discovery_state(record).up
     assert discovery_state(dataclasses.replace(record, thread=None)).up  # (a process's status)
 
