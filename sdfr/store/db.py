@@ -80,6 +80,9 @@ class Store:
         # parses nothing again. (Not by version: a peer is saved with no services while its
         # announced set is still being fetched, then again with them, under one version.)
         self._parsed: dict[str, tuple[Service, ...]] = {}
+        # The local services by their stored JSON text: a reload after one publish parses
+        # one service, not the whole set (both layers reload it after every change).
+        self._local_parsed: dict[str, Service] = {}
 
     def close(self) -> None:
         self._db.close()
@@ -141,7 +144,12 @@ class Store:
         with self._tx(immediate=False):
             version = self.local_version()
             rows = self._db.execute("SELECT body FROM local_services ORDER BY seq").fetchall()
-        return version, [_service_from_row(r[0]) for r in rows]
+        known, parsed = self._local_parsed, {}
+        for (body,) in rows:
+            service = known.get(body)
+            parsed[body] = service if service is not None else _service_from_row(body)
+        self._local_parsed = parsed
+        return version, [parsed[body] for (body,) in rows]
 
     def sync(self) -> None:
         """Make what was committed so far durable: fsync the write-ahead log (and, the first

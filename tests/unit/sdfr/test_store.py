@@ -148,3 +148,27 @@ def test_a_peer_saved_again_under_one_version_shows_its_new_services(tmp_path: P
     assert reader.load_peers()[0].services == ()
     writer.save_peers([dataclasses.replace(empty, services=svcs)])
     assert reader.load_peers()[0].services == svcs
+
+
+def test_reloading_the_local_set_parses_only_what_changed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Both layers reload the local set after every change: at the paper's 70 services each
+    reload parsed all 70 (most of a publish's time in the API). Now only new ones are parsed,
+    and the set read is the same as a fresh store's."""
+    from sdfr.store import db
+
+    store = Store(tmp_path)
+    for i in range(70):
+        store.add_service(Service(id=f"s{i:02d}", name=f"cam{i}", type="sensor.camera"))
+    store.local_state()
+    parsed: list[str] = []
+    real = db._service_from_row
+    monkeypatch.setattr(db, "_service_from_row", lambda body: parsed.append(body) or real(body))
+    store.add_service(Service(id="new", name="lidar", type="sensor.lidar"))
+    store.remove_service("s03")
+    version, services = store.local_state()
+    assert len(parsed) == 1 and '"new"' in parsed[0]
+    monkeypatch.undo()
+    assert (version, services) == Store(tmp_path).local_state()
+    assert [s.id for s in services][-1] == "new" and "s03" not in {s.id for s in services}
