@@ -129,8 +129,14 @@ def test_samples_keep_their_indicators_through_json() -> None:
 
 
 def test_a_process_tree_and_its_cpu_and_memory() -> None:
-    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(30)"],
+        stdout=subprocess.PIPE,
+    )
     try:
+        # Its start-up done (its CPU in the window would be a second core's: CI saw 0.36 s
+        # of CPU in 0.305 s of wall time), it sleeps through the window.
+        assert child.stdout is not None and child.stdout.readline() == b"up\n"
         kids = procstat.children()
         assert child.pid in procstat.tree(os.getpid(), kids)
         first = procstat.Usage.read([os.getpid(), child.pid])
@@ -148,6 +154,8 @@ def test_a_process_tree_and_its_cpu_and_memory() -> None:
     finally:
         child.kill()
         child.wait()
+        if child.stdout is not None:
+            child.stdout.close()
     gone = procstat.Usage.read([child.pid])  # a process that is gone counts for nothing
     assert gone.processes == 0 and gone.cpu_s == 0
 
