@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from bench import change_path
 from bench.paper_measure import dig
 
 
@@ -97,6 +98,7 @@ def markdown(r: dict[str, Any]) -> list[str]:
         f"{r.get('publishers_per_robot')} services each under the same churn, every system at "
         "once. Knobs: " + "; ".join(f"{v['label']}: {v['knob']}" for v in systems.values()) + ".",
         *floor_line(r),
+        *change_path.sentence(r.get("sdfr_change_path") or {}),
         "",
         f"| measure | {' | '.join(head)} | note |",
         "|" + " --- |" * (len(head) + 2),

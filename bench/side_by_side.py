@@ -54,7 +54,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from bench import err, floor, paper_lab
+from bench import change_path, err, floor, paper_lab
 from bench.listed import (
     everyone_lists,
     everyone_lists_one,
@@ -242,6 +242,9 @@ def run(
             fleet.stop_all()
             keep_logs(lab, folder)
     result["conditions_after"] = conditions()
+    if "churn_window" in result:  # where SDfR's time went, from the pcaps (closed by now)
+        start, end = result["churn_window"]
+        result["sdfr_change_path"] = change_path.decompose(folder, names, (start, end))
     result["table"] = table(result)
     return result
 
@@ -252,6 +255,7 @@ def steps(lab: Lab, fleet: Fleet, names: list[str], timing: Timing) -> dict[str,
     # 1. start-up, both at once.
     t0 = time.time()
     churn = (t0 + timing.settle, t0 + timing.settle + timing.churn)
+    out["churn_window"] = list(churn)
     for peer in fleet.peers:
         fleet.start_peer(peer, t0 + 0.5, churn)
     lab.start_all(beacon_interval=timing.beacon)

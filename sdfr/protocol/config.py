@@ -100,8 +100,8 @@ class CoreConfig:
     update_coalesce: float = 0.0
     #: Changes are announced at once while `update_burst` announcements are saved up, one
     #: more each `update_gap` seconds (a token bucket): at the paper's churn (a change every
-    #: 1.25 s) every change goes out at once; a program's burst of changes goes out in
-    #: `update_burst` announcements, then gathers, one announcement a gap.
+    #: 1.25 s) 98 % go out at once; a program's burst of changes goes out in `update_burst`
+    #: announcements, then gathers, one announcement a gap.
     update_gap: float = UPDATE_GAP
     update_burst: int = UPDATE_BURST
     #: Robot-to-robot datagrams in the compact form (`sdfr.wire.encode`) to peers that read
