@@ -22,7 +22,9 @@ class Probe:
         self.m = interfaces()
         self.neighbors, self.changes, self.diagnostics = Recorded(), Recorded(), Recorded()
         rospy.Subscriber(f"{prefix}/neighbors", NeighborList, self.neighbors.add)
-        rospy.Subscriber(f"{prefix}/changes", Change, self.changes.add, queue_size=100)
+        self.changes_sub = rospy.Subscriber(
+            f"{prefix}/changes", Change, self.changes.add, queue_size=100
+        )
         rospy.Subscriber("/diagnostics", DiagnosticArray, self.diagnostics.add)
         self.pub = rospy.Publisher(f"{prefix}/publish", Service, queue_size=100)
         self.unpub = rospy.Publisher(f"{prefix}/unpublish", Service, queue_size=100)
@@ -57,6 +59,11 @@ class Probe:
                 time.sleep(0.05)
         for name in (self.search_name, self.list_name):
             rospy.wait_for_service(name, max(0.1, deadline - time.monotonic()))
+        # ~/changes keeps nothing for a late subscriber: connected to the node's publisher.
+        while self.changes_sub.get_num_connections() == 0:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no publisher of {self.changes_sub.resolved_name} connected")
+            time.sleep(0.05)
         _t, first = self.neighbors.first(lambda _: True, 0.0, max(0.1, deadline - time.monotonic()))
         return {"neighbors": first}
 

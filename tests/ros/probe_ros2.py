@@ -32,7 +32,8 @@ class Probe:
         self.neighbors, self.changes, self.diagnostics = Recorded(), Recorded(), Recorded()
         n = self.node
         n.create_subscription(NeighborList, f"{prefix}/neighbors", self.neighbors.add, latched)
-        n.create_subscription(Change, f"{prefix}/changes", self.changes.add, reliable)
+        self.changes_topic = f"{prefix}/changes"
+        n.create_subscription(Change, self.changes_topic, self.changes.add, reliable)
         n.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.add, 10)
         self.pub = n.create_publisher(Service, f"{prefix}/publish", reliable)
         self.unpub = n.create_publisher(Service, f"{prefix}/unpublish", reliable)
@@ -79,6 +80,11 @@ class Probe:
         for client in (self.search, self.list):
             if not client.wait_for_service(timeout_sec=max(0.1, deadline - time.monotonic())):
                 raise TimeoutError(f"service {client.srv_name} not available")
+        # ~/changes keeps nothing for a late subscriber: the node's publisher must be known.
+        while self.node.count_publishers(self.changes_topic) == 0:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"nobody publishes {self.changes_topic}")
+            time.sleep(0.05)
         _t, first = self.neighbors.first(lambda _: True, 0.0, max(0.1, deadline - time.monotonic()))
         return {"neighbors": first}
 

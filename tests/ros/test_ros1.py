@@ -43,6 +43,9 @@ def test_the_same_flow_through_rospy_roslaunch_and_the_command_line(
 ) -> None:
     lab.add_robot("r1", pos=(0.0, 0.0))
     r2 = lab.add_robot("r2", pos=(1.0, 0.0))
+    # Apart until both probes listen (run_flow merges): r2's node tells r1's arrival on
+    # ~/changes, which keeps nothing for a late subscriber (as in test_ros2).
+    lab.partition([["r1"], ["r2"]])
     lab.start("r1", beacon_interval=BEACON)
     env1 = ros1_environ(tmp_path / "ros-r1")
     env2 = ros1_environ(tmp_path / "ros-r2")
@@ -91,6 +94,7 @@ def run_flow(
 ) -> None:  # fmt: skip
     assert p1.call("ready")["neighbors"]["robot_id"] == "r1"
     assert p2.call("ready")["neighbors"]["robot_id"] == "r2"  # latched: sent before we came
+    lab.merge()
     p2.call("wait_neighbors", robot="r1")
 
     # rospy: publish on r1, seen on r2 typed as sent, found by ~search.

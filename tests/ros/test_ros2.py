@@ -49,6 +49,10 @@ def test_a_service_published_on_one_robot_is_seen_and_found_on_the_other(
 ) -> None:
     lab.add_robot("r1", pos=(0.0, 0.0))
     r2 = lab.add_robot("r2", pos=(1.0, 0.0))
+    # Apart until both probes listen (run_flow merges): r2's node tells r1's arrival on
+    # ~/changes, which keeps nothing for a late subscriber; CI saw r2's sdfrd, started by
+    # its node, list r1 before probe 2 subscribed.
+    lab.partition([["r1"], ["r2"]])
     lab.start("r1", beacon_interval=BEACON)
     d1, d2 = domains()
     env1, env2 = ros2_environ(d1), ros2_environ(d2)
@@ -80,6 +84,7 @@ def run_flow(lab: Lab, p1: Probe, p2: Probe, node1: Proc, node2: Proc, tmp: Path
     first = p1.call("ready")["neighbors"]
     assert first["robot_id"] == "r1"
     assert p2.call("ready")["neighbors"]["robot_id"] == "r2"
+    lab.merge()
     p2.call("wait_neighbors", robot="r1")
     p1.call("wait_neighbors", robot="r2")
 
