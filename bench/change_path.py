@@ -32,8 +32,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from bench.paper_measure import percentiles
-from netlab.pcap import Record, read_pcap
+from bench.paper_measure import percentiles, read_events
+from netlab.pcap import Record, capture_infos, read_pcap
 
 PARTS = ("request", "announced", "carried", "challenged", "answered", "told", "total")
 
@@ -111,28 +111,20 @@ def decompose(
 ) -> dict[str, dict[str, float | int]]:
     """The parts of `robot`'s changes asked for within `window` (the churn), as each other
     robot of the run in `folder` saw them."""
-    addresses = {
-        r: json.loads((folder / f"{r}.pcap.json").read_text())["addresses"][0].split("/")[0]
-        for r in robots
-    }
+    infos = capture_infos(folder)
+    addresses = {r: infos[r].addresses[0].split("/")[0] for r in robots}
     lines = {r: Timeline(read_pcap(folder / f"{r}.pcap")) for r in robots}
+    files = [folder / f"sdfr-{kind}-{r}.jsonl" for kind in ("loader", "watcher") for r in robots]
     seen: dict[tuple[str, str], float] = {}
-    for r in robots:
-        for note in _notes(folder / f"sdfr-watcher-{r}.jsonl"):
-            if note.get("op") == "seen" and note.get("robot") == robot:
-                seen.setdefault((r, str(note["sid"])), float(note["t"]))
-    publishes = [
-        n
-        for n in _notes(folder / f"sdfr-loader-{robot}.jsonl")
-        if n.get("op") == "publish" and window[0] <= float(n["asked"]) <= window[1]
-    ]
+    publishes = []
+    for note in read_events(p for p in files if p.exists()):  # in time order
+        if note.get("robot") != robot:
+            continue
+        if note.get("op") == "seen":
+            seen.setdefault((str(note["at"]), str(note["sid"])), float(note["t"]))
+        elif note.get("op") == "publish" and window[0] <= float(note["asked"]) <= window[1]:
+            publishes.append(note)
     return summary(follow(robot, publishes, seen, lines, addresses))
-
-
-def _notes(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def sentence(path: Mapping[str, Mapping[str, float | int]]) -> list[str]:

@@ -130,7 +130,7 @@ class LabMedium:
             return {(a, b): 0.0 for a in self._robots for b in self._robots if a != b}
         link_loss = {name: shape.loss for name, shape in self._shapes.items()}
         links = with_link_loss(self.topology.links(), link_loss)
-        return forwarded(links, self.mesh_radios()) if self.air != "wired" else links
+        return forwarded(links, self.mesh_radios())
 
     def mesh_radios(self) -> set[str]:
         """A radio lab's robots whose sdfrd was last started in 802.11s mesh (`wifi_mode`):
