@@ -556,7 +556,8 @@ def span_backend(
                        image=spec.image if spec.runtime == "docker" else None,
                        addressing=spec.addressing, port=port, env=dict(env or {}))  # fmt: skip
 
-    def connect(lab: LabLike, robot: str) -> ClientLike:
+    def connect(lab: LabLike, robot: str, timeout: float) -> ClientLike:
+        # the robot's host agent asks its daemon with its own lab's client and timeout
         assert isinstance(lab, SpanLab)
         return lab.client(robot)
 

@@ -120,12 +120,21 @@ def _real_lab(spec: LabSpec) -> LabLike:
     return Lab(spec.name, seed=spec.seed, fleet=spec.fleet, range_model=spec.range_model, **extra)
 
 
-def _real_client(lab: LabLike, robot: str) -> ClientLike:
+#: How long the observer waits for a robot's answer before its sample says "error": a sample
+#: is a measurement, and a late one is worth less than the next.
+SAMPLE_TIMEOUT = 2.0
+#: How long a step (a publish, a check's question) waits for a robot's answer: an action is not
+#: a measurement, and a machine that stalls for seconds (the VM tiers' emulated CPU, where a
+#: 6 s stall of the whole VM failed a publish after its three 2 s tries) must not fail the run.
+STEP_TIMEOUT = 15.0
+
+
+def _real_client(lab: LabLike, robot: str, timeout: float) -> ClientLike:
     from netlab.lab import Lab
     from sdfr.client import Client
 
     assert isinstance(lab, Lab)
-    return Client(unix_socket=lab.robot(robot).api_socket, timeout=2.0)
+    return Client(unix_socket=lab.robot(robot).api_socket, timeout=timeout)
 
 
 def sdfrd_flags(spec: LabSpec) -> frozenset[str]:
@@ -160,7 +169,8 @@ class Backend:
     """How the engine makes a lab, talks to a robot's daemon, and learns sdfrd's options."""
 
     make_lab: Callable[[LabSpec], LabLike] = _real_lab
-    connect: Callable[[LabLike, str], ClientLike] = _real_client
+    #: A client of a robot's daemon that waits `timeout` seconds for an answer.
+    connect: Callable[[LabLike, str, float], ClientLike] = _real_client
     flags: Callable[[LabSpec], frozenset[str]] = sdfrd_flags
     #: Whether tcpdump can run in the lab's namespaces.
     can_capture: bool = True

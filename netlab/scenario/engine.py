@@ -25,7 +25,7 @@ from netlab.pcap import read_run
 from netlab.ranges import UnitDisc
 from netlab.samples import Sample
 from netlab.scenario.actions import ACTIONS
-from netlab.scenario.backend import Backend, LabSpec
+from netlab.scenario.backend import SAMPLE_TIMEOUT, STEP_TIMEOUT, Backend, LabSpec
 from netlab.scenario.conditions import Agreement, Resources
 from netlab.scenario.context import CheckContext, Fleet, History, StepContext
 from netlab.scenario.judges import AFTER_POLL, EVALUATORS, JUDGES
@@ -111,9 +111,9 @@ class Run:
             try:
                 self._add_robots()
                 captures = self._start_captures()
-                probe = Probe(lambda r: self.backend.connect(self.lab, r))
+                probe = Probe(lambda r: self.backend.connect(self.lab, r, STEP_TIMEOUT))
                 observer = Observer(
-                    Probe(lambda r: self.backend.connect(self.lab, r)),
+                    Probe(lambda r: self.backend.connect(self.lab, r, SAMPLE_TIMEOUT)),
                     self.truth,
                     self.sc.sample,
                     clock=self.clock,

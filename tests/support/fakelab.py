@@ -52,6 +52,9 @@ class FakeLab:
         self.blind: set[tuple[str, str]] = set()
         self.calls: list[tuple[Any, ...]] = []
         self.bias: dict[tuple[str, str], float] = {}
+        #: A robot's daemon answers a publish only after this many seconds (a stalled machine):
+        #: a client that waits less gets "timed out".
+        self.stall: dict[str, float] = {}
         self.lock = threading.Lock()
         self.state = "new"
 
@@ -160,9 +163,10 @@ class FakeLab:
 
 
 class FakeClient:
-    def __init__(self, lab: FakeLab, robot: str) -> None:
+    def __init__(self, lab: FakeLab, robot: str, timeout: float = 2.0) -> None:
         self.lab = lab
         self.robot = robot
+        self.timeout = timeout
 
     def _entry(self, peer: str, reachable: bool) -> dict[str, Any]:
         """`peer` as sdfrd's API shows it: a history map's robot (`PeerJson`); a neighbour
@@ -215,6 +219,8 @@ class FakeClient:
     ) -> str:
         if self.robot not in self.lab.running:
             raise ApiError(0, "cannot reach sdfrd")
+        if self.lab.stall.get(self.robot, 0.0) > self.timeout:
+            raise ApiError(0, f"cannot reach sdfrd of {self.robot}: timed out")
         sid = f"{self.robot}-{name}"
         self.lab.services[self.robot][sid] = name
         return sid
@@ -238,8 +244,8 @@ def fake() -> Iterator[tuple[Backend, list[FakeLab]]]:
         labs.append(lab)
         return lab
 
-    def connect(lab: Any, robot: str) -> FakeClient:
-        return FakeClient(lab, robot)
+    def connect(lab: Any, robot: str, timeout: float) -> FakeClient:
+        return FakeClient(lab, robot, timeout)
 
     flags = frozenset({"beacon_interval", "miss_limit", "ping_window"})
     yield Backend(make, connect, lambda spec: flags, can_capture=False), labs

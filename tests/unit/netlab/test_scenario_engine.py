@@ -215,6 +215,35 @@ def test_an_error_names_the_daemons_that_ended_though_no_step_stopped_them(
     assert "r3 (" not in result.error
 
 
+def test_a_step_waits_out_a_robot_that_stalls_for_seconds_and_a_sample_does_not(
+    fake: tuple[Backend, list[FakeLab]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The radio VM's emulated CPU stalled for 6 s in a publish (CI, 2026-11-29): a step's
+    client waits that out (an action is no measurement), the observer's does not (a late
+    sample is worth less than the next)."""
+    backend, labs = fake
+    clock = _virtual(backend, monkeypatch)
+    waits: list[float] = []
+
+    def connect(lab: FakeLab, robot: str, timeout: float) -> FakeClient:
+        waits.append(timeout)
+        lab.stall["r1"] = 6.0
+        return FakeClient(lab, robot, timeout)
+
+    sc = Scenario(
+        "stall",
+        robots=2,
+        beacon=PRODUCT_BEACON,
+        capture="none",
+        steps=[Start(), Publish("r1", "camera", "sensor.camera"), Sleep("5 s")],
+    )
+    run_ = replace(backend, clock=clock, connect=connect)
+    result = run(sc, run_dir=tmp_path, backend=run_, say=quiet([]))
+    assert result.status == "passed", result.error
+    assert labs[-1].services["r1"] == {"r1-camera": "camera"}
+    assert min(waits) < 6.0 < max(waits)
+
+
 def test_a_start_step_waits_as_long_as_it_says(
     fake: tuple[Backend, list[FakeLab]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
