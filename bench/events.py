@@ -6,6 +6,7 @@ about 30 s. JSON on stdout and in runs/bench-events.json."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import socket
@@ -172,7 +173,8 @@ def latency(tmp: Path, subscribers: int, changes: int = 100) -> dict[str, Any]:
         proc.wait(10)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args(argv)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         result = {"append": append_cost(tmp), "latency": [latency(tmp, n) for n in (1, 16, 64)]}

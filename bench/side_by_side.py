@@ -449,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--churn", type=float, help="seconds of churn (default: the timing's)")
     p.add_argument("--loss", type=numbers(float), default=[0.0],
-                   help="loss in % on every pair of robots, both ways, or several: 0,10 "
+                   help="loss in %% on every pair of robots, both ways, or several: 0,10 "
                         "(default: 0, a clean medium)")  # fmt: skip
     p.add_argument("--peers", default=",".join(DEFAULT_PEERS),
                    help=f"the systems beside SDfR, comma-separated, of {', '.join(PEERS)} "
