@@ -171,6 +171,11 @@ class Service:
     type: str
     url: str | None = None
     attributes: Mapping[str, AttrValue] = field(default_factory=dict)
+    # Its JSON, made once and kept (a service is replaced, never changed): every robot that
+    # holds a set encodes it again at each change of it (its digest, a delta's dictionary,
+    # the history map's row), and 70 services cost ~1 ms of CPU each time.
+    _text: bytes | None = field(default=None, init=False, repr=False, compare=False)
+    _canonical: bytes | None = field(default=None, init=False, repr=False, compare=False)
 
     def to_json(self) -> dict[str, object]:
         return {
@@ -180,6 +185,21 @@ class Service:
             "url": self.url,
             "attributes": dict(self.attributes),
         }
+
+    def json_text(self) -> bytes:
+        """`to_json` as compact UTF-8 JSON in its keys' order (the store's rows, a delta's
+        dictionary)."""
+        if self._text is None:
+            object.__setattr__(self, "_text", _COMPACT.encode(self.to_json()).encode())
+        assert self._text is not None
+        return self._text
+
+    def canonical(self) -> bytes:
+        """`to_json` as the digest hashes it: keys sorted, ASCII only."""
+        if self._canonical is None:
+            object.__setattr__(self, "_canonical", _CANONICAL.encode(self.to_json()).encode())
+        assert self._canonical is not None
+        return self._canonical
 
     @classmethod
     def from_json(cls, obj: object, *, service_id: str | None = None) -> Service:
@@ -242,9 +262,22 @@ def attr_text(value: AttrValue) -> str:
     return str(value)
 
 
+_COMPACT = json.JSONEncoder(ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+_CANONICAL = json.JSONEncoder(sort_keys=True, separators=(",", ":"))
+
+
 def canonical_json(services: Iterable[Service]) -> bytes:
-    items = sorted((s.to_json() for s in services), key=lambda d: str(d["id"]))
-    return json.dumps(items, sort_keys=True, separators=(",", ":")).encode()
+    """The set as its digest hashes it: a JSON array of its services by id, keys sorted."""
+    return b"[" + b",".join(s.canonical() for s in sorted(services, key=_by_id)) + b"]"
+
+
+def json_array(services: Iterable[Service]) -> bytes:
+    """The services as a compact UTF-8 JSON array, in their order (`Service.json_text`)."""
+    return b"[" + b",".join(s.json_text() for s in services) + b"]"
+
+
+def _by_id(service: Service) -> str:
+    return service.id
 
 
 def service_digest(services: Iterable[Service]) -> str:

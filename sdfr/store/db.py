@@ -14,7 +14,7 @@ from typing import Any
 
 from sdfr.records import events as event_log
 from sdfr.records.events import Event
-from sdfr.records.model import PeerRecord, Service
+from sdfr.records.model import PeerRecord, Service, json_array
 from sdfr.store.files import SCHEMA, SCHEMA_VERSION, private_db, private_dir
 from sdfr.store.records import (
     DAEMON,
@@ -225,7 +225,7 @@ class Store:
                 (
                     service.id,
                     seq,
-                    _dumps(service.to_json()),
+                    service.json_text().decode(),
                     ttl,
                     expires,
                     owner.token_hash,
@@ -351,7 +351,7 @@ class Store:
                 r.indicator,
                 r.rtt_ms,
                 r.pings,
-                _dumps([s.to_json() for s in r.services]),
+                json_array(r.services).decode(),
             )
             for r in records
         ]

@@ -34,7 +34,7 @@ def _finish(head: bytes, body: bytes, kind: str) -> bytes:
 
 def _service_json(service: Service) -> bytes:
     try:
-        return _JSON_ENCODER.encode(service.to_json()).encode()
+        return service.json_text()
     except (ValueError, TypeError) as exc:  # NaN/inf, lone surrogates, non-JSON values
         raise ValueError(f"service {service.id!r} cannot be encoded as JSON: {exc}") from None
 

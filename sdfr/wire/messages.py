@@ -227,8 +227,7 @@ def delta_dictionary(services: Sequence[Service]) -> bytes:
     """What a packed delta is deflated against: its base set's services as JSON, by id.  The
     sender and a robot holding the base set make the same bytes (the digest vouches for the
     set): a new service much like the others then takes a few dozen bytes."""
-    blobs = [_JSON_ENCODER.encode(s.to_json()).encode() for s in sorted(services, key=_by_id)]
-    return b",".join(blobs)[-_WINDOW:]
+    return b",".join(s.json_text() for s in sorted(services, key=_by_id))[-_WINDOW:]
 
 
 def _by_id(service: Service) -> str:
