@@ -188,18 +188,20 @@ class Service:
 
     def json_text(self) -> bytes:
         """`to_json` as compact UTF-8 JSON in its keys' order (the store's rows, a delta's
-        dictionary)."""
-        if self._text is None:
-            object.__setattr__(self, "_text", _COMPACT.encode(self.to_json()).encode())
-        assert self._text is not None
-        return self._text
+        dictionary, the wire)."""
+        text = self._text
+        if text is None:
+            text = COMPACT_JSON.encode(self.to_json()).encode()
+            object.__setattr__(self, "_text", text)
+        return text
 
     def canonical(self) -> bytes:
         """`to_json` as the digest hashes it: keys sorted, ASCII only."""
-        if self._canonical is None:
-            object.__setattr__(self, "_canonical", _CANONICAL.encode(self.to_json()).encode())
-        assert self._canonical is not None
-        return self._canonical
+        text = self._canonical
+        if text is None:
+            text = _CANONICAL.encode(self.to_json()).encode()
+            object.__setattr__(self, "_canonical", text)
+        return text
 
     @classmethod
     def from_json(cls, obj: object, *, service_id: str | None = None) -> Service:
@@ -262,13 +264,14 @@ def attr_text(value: AttrValue) -> str:
     return str(value)
 
 
-_COMPACT = json.JSONEncoder(ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+#: Compact UTF-8 JSON without NaN or infinities: a service's text, and the wire's JSON.
+COMPACT_JSON = json.JSONEncoder(ensure_ascii=False, allow_nan=False, separators=(",", ":"))
 _CANONICAL = json.JSONEncoder(sort_keys=True, separators=(",", ":"))
 
 
 def canonical_json(services: Iterable[Service]) -> bytes:
     """The set as its digest hashes it: a JSON array of its services by id, keys sorted."""
-    return b"[" + b",".join(s.canonical() for s in sorted(services, key=_by_id)) + b"]"
+    return b"[" + b",".join(s.canonical() for s in sorted(services, key=by_id)) + b"]"
 
 
 def json_array(services: Iterable[Service]) -> bytes:
@@ -276,7 +279,8 @@ def json_array(services: Iterable[Service]) -> bytes:
     return b"[" + b",".join(s.json_text() for s in services) + b"]"
 
 
-def _by_id(service: Service) -> str:
+def by_id(service: Service) -> str:
+    """A service's sort key in a set: its id."""
     return service.id
 
 

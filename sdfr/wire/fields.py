@@ -5,11 +5,10 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Literal
 
-from sdfr.records.model import ROBOT_ID_RE, SERVICE_ID_RE, Service
+from sdfr.records.model import COMPACT_JSON, ROBOT_ID_RE, SERVICE_ID_RE, Service
 from sdfr.wire.messages import (
     _BODY_CLOSE,
     _BODY_OPEN,
-    _JSON_ENCODER,
     MAX_BOOT_ID,
     MAX_ENCODED,
     MAX_FLEET,
@@ -53,7 +52,7 @@ def _delta_body(msg: Update, *, compact: bool = False) -> bytes:
         not SERVICE_ID_RE.fullmatch(r) for r in msg.removed
     ):
         raise ValueError(f"removed ids must be unique service ids: {msg.removed!r}")
-    removed = _JSON_ENCODER.encode(list(msg.removed)).encode()
+    removed = COMPACT_JSON.encode(list(msg.removed)).encode()
     if compact and not msg.services:
         return b'{"removed":' + removed + b"}"
     full = _body([_service_json(s) for s in msg.services])

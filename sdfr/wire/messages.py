@@ -8,7 +8,7 @@ from functools import lru_cache
 from typing import Literal, NoReturn, TypeAlias
 
 from sdfr import __version__
-from sdfr.records.model import Service
+from sdfr.records.model import Service, by_id
 
 MAX_DATAGRAM = 1400
 #: Room every encoded datagram leaves for a seal (sdfr.protocol.auth): a keyed fleet then has
@@ -203,8 +203,6 @@ MAX_UNPACKED = 256 * 1024
 #: Deflate's window: the most of a dictionary it can use.
 _WINDOW = 32768
 
-_JSON_ENCODER = json.JSONEncoder(ensure_ascii=False, allow_nan=False, separators=(",", ":"))
-
 
 def _no_constant(name: str) -> NoReturn:
     raise ValueError(f"{name} is not JSON")
@@ -227,11 +225,7 @@ def delta_dictionary(services: Sequence[Service]) -> bytes:
     """What a packed delta is deflated against: its base set's services as JSON, by id.  The
     sender and a robot holding the base set make the same bytes (the digest vouches for the
     set): a new service much like the others then takes a few dozen bytes."""
-    return b",".join(s.json_text() for s in sorted(services, key=_by_id))[-_WINDOW:]
-
-
-def _by_id(service: Service) -> str:
-    return service.id
+    return b",".join(s.json_text() for s in sorted(services, key=by_id))[-_WINDOW:]
 
 
 def _is_digest(value: str) -> bool:
